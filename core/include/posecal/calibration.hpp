@@ -1,0 +1,88 @@
+// Calibration: Zhang's initial solution (OpenCV) refined by a Ceres bundle adjustment over the
+// intrinsics and every frame's board pose, with the parameter covariance of the paper's eq. 5.
+#pragma once
+
+#include <Eigen/Core>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "posecal/camera_model.hpp"
+#include "posecal/geometry.hpp"
+#include "posecal/target.hpp"
+
+namespace posecal {
+
+// One frame's correspondences (a Detection without the bookkeeping).
+struct Observation {
+  std::vector<int> ids;
+  std::vector<cv::Point2d> image_points;
+  std::vector<cv::Point3d> board_points;
+  size_t size() const { return image_points.size(); }
+  static Observation from(const Detection& d) { return {d.ids, d.image_points, d.board_points}; }
+};
+
+struct CalibrationOptions {
+  LensModel lens_model = LensModel::kOpenCV5;
+  bool fix_principal_point = false;  // keep cx, cy at their initial value (image centre if cold)
+  bool fix_aspect_ratio = false;     // fy / fx held at its initial value
+  bool zero_tangential = false;      // p1 = p2 = 0, fixed
+  bool zero_distortion = false;      // every distortion coefficient 0, fixed
+  std::vector<std::string> fixed;    // further parameters held fixed, by name ("k3", "fy", ...)
+  int max_iterations = 100;          // Levenberg-Marquardt iterations
+  double function_tolerance = 1e-12;
+  double parameter_tolerance = 1e-12;
+  // Bound on the relative standard deviation of fx and fy (unit-noise covariance scaled by the
+  // residual variance) above which the solution is rejected as degenerate: e.g. every view
+  // fronto-parallel, where the focal length cannot be told from the distance (paper §3.1).
+  double max_relative_focal_std = 0.2;
+
+  // Ceres style: true if usable, else false with the reason in *error.
+  bool is_valid(std::string* error) const;
+};
+
+struct CalibrationResult {
+  CameraModel model;
+  std::vector<Pose> poses;  // T_cam_board per frame
+  std::vector<bool> fixed;  // per intrinsic
+  int num_points = 0;
+  int num_unknowns = 0;     // free intrinsics + 6 per frame
+  int iterations = 0;
+  bool converged = false;   // solver reached a tolerance (not the iteration cap)
+  double rms_px = 0;        // eps_res: sqrt(sum |p - pi(P)|^2 / N)
+  std::vector<double> frame_rms_px;
+  // Backward transport of covariance, Sigma_v = (J^T Sigma_p^-1 J)^+ with Sigma_p = I (paper
+  // eq. 5). Order: intrinsics, then (r, t) per frame. Rows/columns of fixed parameters are 0.
+  Eigen::MatrixXd covariance;
+  // Residual variance sigma^2 = SSR / (2N - unknowns), an estimate of the point noise.
+  double residual_variance = 0;
+  std::vector<double> std_unit;    // sqrt(diag(covariance)) of the intrinsics (Sigma_p = I)
+  std::vector<double> std_scaled;  // the same scaled by the residual variance: honest sigma
+  std::vector<double> index_of_dispersion;  // sigma_unit^2 / |C| (sigma^2 where C = 0)
+  int rank_deficiency = 0;         // eigenvalues of J^T J treated as zero by the pseudo-inverse
+  double solve_ms = 0;
+
+  Eigen::MatrixXd covariance_scaled() const { return covariance * residual_variance; }
+};
+
+// Warm start: a previous solution whose poses cover the first poses.size() frames. Frames beyond
+// get their pose from PnP with the previous model.
+struct WarmStart {
+  CameraModel model;
+  std::vector<Pose> poses;
+};
+
+// Calibrates from frames of correspondences. image_size is the sensor size in pixels.
+// Throws Error(kInvalidArgument) for malformed input (NaN, < 4 points in a frame, ...) and
+// Error(kDegenerate) when the data cannot determine the parameters (too few points, all views
+// fronto-parallel, ...), naming the cause.
+CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size image_size,
+                            const CalibrationOptions& options = {},
+                            const WarmStart* warm_start = nullptr);
+
+// Fits the pose of one frame with fixed intrinsics (PnP, then Ceres refinement). Returns false if
+// the frame has fewer than 4 points or the fit fails.
+bool estimate_pose(const CameraModel& model, const Observation& frame, Pose* T_cam_board,
+                   double* rms_px = nullptr);
+
+}  // namespace posecal

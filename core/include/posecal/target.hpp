@@ -1,0 +1,101 @@
+// Calibration targets: ChArUco (default) and the classic chessboard.
+//
+// Board frame (same as OpenCV 4.6's CharucoBoard object points): origin at the top-left outer
+// corner of the square pattern, x along the columns, y down the rows, z into the board; metres.
+// For the chessboard the inner corner (row i, column j) is at ((j + 1) s, (i + 1) s, 0), so both
+// targets share one convention.
+//
+// Detections use OpenCV's pixel convention (pixel centres at integer coordinates).
+#pragma once
+
+#include <memory>
+#include <opencv2/core.hpp>
+#include <string>
+#include <vector>
+
+namespace posecal {
+
+enum class TargetType { kCharuco, kChessboard };
+
+struct TargetSpec {
+  TargetType type = TargetType::kCharuco;
+  // ChArUco: number of squares. Chessboard: number of inner corners.
+  int cols = 9;
+  int rows = 6;
+  double square_length_m = 0.028;
+  double marker_length_m = 0.0182;  // ChArUco only; paper setup: 0.65 of the square
+  std::string dictionary = "DICT_4X4_50";
+
+  // "charuco:9x6:0.028:0.0182:DICT_4X4_50" or "chessboard:9x6:0.025" (inner corners).
+  // Throws Error(kInvalidArgument) naming the offending field.
+  static TargetSpec parse(const std::string& spec);
+  std::string to_string() const;
+  // Throws Error(kInvalidArgument) if inconsistent (marker too large, too few corners...).
+  void validate() const;
+};
+
+struct Detection {
+  std::vector<int> ids;                    // corner ids, ascending
+  std::vector<cv::Point2d> image_points;   // subpixel, OpenCV pixel convention
+  std::vector<cv::Point3d> board_points;   // matching board coordinates (z = 0)
+  int markers = 0;                         // ArUco markers seen (ChArUco only)
+  size_t size() const { return ids.size(); }
+  bool empty() const { return ids.empty(); }
+};
+
+struct DetectorOptions {
+  // ChArUco: minimum number of adjacent markers for a corner to be interpolated (OpenCV's
+  // minMarkers). Chessboard: ignored.
+  int min_markers = 2;
+  // Half-size of cornerSubPix's window for the chessboard; 0 picks it from the corner spacing.
+  int subpix_half_window = 0;
+  // If > 0, ArUco markers are searched in an image downscaled so its longer side is at most this
+  // many pixels; corners are always refined at full resolution. 0 disables downscaling.
+  int marker_search_max_side = 0;
+};
+
+// A rendered board: texel (u, v) (OpenCV pixel convention) shows board point
+// X = (u + 0.5) * metres_per_texel - margin_m, likewise Y.
+struct BoardTexture {
+  cv::Mat image;  // CV_8UC1
+  double metres_per_texel = 0;
+  double margin_m = 0;
+};
+
+class Target {
+ public:
+  explicit Target(const TargetSpec& spec = TargetSpec{});
+  ~Target();
+  Target(const Target&);
+  Target& operator=(const Target&);
+
+  const TargetSpec& spec() const { return spec_; }
+  // Total number of corners a full detection yields.
+  int num_corners() const { return static_cast<int>(corners_.size()); }
+  // Board coordinates of every corner, indexed by id.
+  const std::vector<cv::Point3d>& corners() const { return corners_; }
+  // Outer extent of the square pattern in metres (width along x, height along y).
+  cv::Size2d board_size_m() const;
+  // The four outer corners of the square pattern (TL, TR, BR, BL), board frame.
+  std::vector<cv::Point3d> outline() const;
+
+  // Detects the target in an 8-bit grey (or BGR) image. Never throws for image content;
+  // throws Error(kInvalidArgument) for an empty or non-8-bit image.
+  Detection detect(const cv::Mat& image, const DetectorOptions& options = {}) const;
+
+  // Renders the board pattern (no margin) at an integer number of texels per square, plus
+  // `margin_squares` of white border. Texel edges coincide with square edges exactly.
+  BoardTexture render(int texels_per_square, double margin_squares = 0.0) const;
+
+  // Printable target at exact physical scale: PNG at `dpi` (with a pHYs chunk so the printer
+  // keeps the scale) or vector PDF, chosen by the extension of `path`.
+  void write_printable(const std::string& path, double dpi = 300.0, double margin_m = 0.01) const;
+
+ private:
+  struct Impl;
+  TargetSpec spec_;
+  std::vector<cv::Point3d> corners_;
+  std::shared_ptr<const Impl> impl_;
+};
+
+}  // namespace posecal

@@ -1,0 +1,207 @@
+#include <gtest/gtest.h>
+
+#include <opencv2/calib3d.hpp>
+
+#include "posecal/calibration.hpp"
+#include "posecal/error.hpp"
+#include "posecal/metrics.hpp"
+#include "posecal/synthetic.hpp"
+#include "posecal/views.hpp"
+
+using namespace posecal;
+
+namespace {
+
+std::vector<Observation> observe(SyntheticCamera& sc, const std::vector<Pose>& poses) {
+  std::vector<Observation> out;
+  for (const Pose& p : poses) {
+    const Detection d = sc.target().detect(sc.render(p));
+    if (d.size() >= 6) out.push_back(Observation::from(d));
+  }
+  return out;
+}
+
+RenderOptions noisy(uint64_t seed) {
+  RenderOptions ro;
+  ro.noise_sigma = 2.0;
+  ro.blur_sigma_px = 0.8;
+  ro.seed = seed;
+  return ro;
+}
+
+}  // namespace
+
+TEST(Calibration, RecoversEveryIntrinsicWithin3Sigma) {
+  const CameraModel truth = c525_reference_model();
+  const Target target;
+  SyntheticCamera sc(truth, target, noisy(7));
+  const auto frames = observe(sc, random_board_views(21, 20, truth, target));
+  ASSERT_EQ(frames.size(), 20u);
+  const CalibrationResult r = calibrate(frames, truth.size());
+  EXPECT_TRUE(r.converged);
+  EXPECT_EQ(r.rank_deficiency, 0);
+  EXPECT_LT(r.rms_px, 0.2);
+  for (int i = 0; i < 9; ++i) {
+    const double err = r.model.params()[i] - truth.params()[i];
+    EXPECT_LT(std::abs(err), 3 * r.std_scaled[i])
+        << truth.param_names()[i] << " est " << r.model.params()[i] << " true " << truth.params()[i]
+        << " std " << r.std_scaled[i];
+    EXPECT_GT(r.std_scaled[i], 0);
+  }
+  EXPECT_LT(ground_truth_error(truth, r.model), 0.1);
+}
+
+TEST(Calibration, NoWorseThanOpenCVOnTheSameFrames) {
+  const CameraModel truth = c525_reference_model();
+  const Target target;
+  SyntheticCamera sc(truth, target, noisy(8));
+  const auto frames = observe(sc, random_board_views(22, 20, truth, target));
+  const CalibrationResult r = calibrate(frames, truth.size());
+  std::vector<std::vector<cv::Point3f>> obj;
+  std::vector<std::vector<cv::Point2f>> img;
+  for (const auto& f : frames) {
+    obj.emplace_back(f.board_points.begin(), f.board_points.end());
+    img.emplace_back(f.image_points.begin(), f.image_points.end());
+  }
+  cv::Mat K, D, std_intr, std_extr, per_view;
+  std::vector<cv::Mat> rv, tv;
+  const double cv_rms = cv::calibrateCamera(obj, img, truth.size(), K, D, rv, tv, std_intr,
+                                                    std_extr, per_view);
+  const CameraModel cvm = CameraModel::opencv5(
+      truth.width(), truth.height(), K.at<double>(0, 0), K.at<double>(1, 1), K.at<double>(0, 2),
+      K.at<double>(1, 2),
+      {D.at<double>(0), D.at<double>(1), D.at<double>(2), D.at<double>(3), D.at<double>(4)});
+  const double ours = ground_truth_error(truth, r.model), theirs = ground_truth_error(truth, cvm);
+  std::printf("eps_gt ours %.5f px, OpenCV %.5f px; rms ours %.5f OpenCV %.5f\n", ours, theirs,
+              r.rms_px, cv_rms);
+  EXPECT_LE(ours, theirs + 1e-4);
+  EXPECT_LE(r.rms_px, cv_rms + 1e-6);
+  // Same covariance structure as OpenCV's own (J^T J)^-1 scaled by a residual variance; OpenCV
+  // 4.6 divides the sum of squared residuals by (points - unknowns) instead of
+  // (2 * points - unknowns), overstating sigma by sqrt((2N - U) / (N - U)) (docs/math.md).
+  const double N = r.num_points, U = r.num_unknowns;
+  const double opencv_factor = std::sqrt((N - U) / (2 * N - U));
+  for (int i = 0; i < 9; ++i) {
+    EXPECT_NEAR(r.std_scaled[i] / std_intr.at<double>(i), opencv_factor, 0.02 * opencv_factor)
+        << truth.param_names()[i];
+  }
+}
+
+TEST(Calibration, WarmStartMatchesColdStart) {
+  const CameraModel truth = c525_reference_model();
+  const Target target;
+  SyntheticCamera sc(truth, target, noisy(9));
+  auto frames = observe(sc, random_board_views(23, 11, truth, target));
+  const std::vector<Observation> first(frames.begin(), frames.end() - 1);
+  const CalibrationResult r10 = calibrate(first, truth.size());
+  const WarmStart ws{r10.model, r10.poses};
+  const CalibrationResult warm = calibrate(frames, truth.size(), {}, &ws);
+  const CalibrationResult cold = calibrate(frames, truth.size());
+  for (int i = 0; i < 9; ++i) {
+    EXPECT_NEAR(warm.model.params()[i], cold.model.params()[i], 1e-6 * (1 + std::abs(cold.model.params()[i])));
+    EXPECT_NEAR(warm.std_unit[i], cold.std_unit[i], 1e-6 * (1 + cold.std_unit[i]));
+  }
+  EXPECT_EQ(warm.covariance.rows(), 9 + 6 * 11);
+}
+
+TEST(Calibration, FocalOnlySingleFrameBootstrap) {
+  const CameraModel truth = c525_reference_model();
+  const Target target;
+  SyntheticCamera sc(truth, target, noisy(10));
+  // One view tilted 35 degrees: enough perspective to fix f with pp and distortion held.
+  const Pose p = board_pose_at(target, Eigen::Vector3d(0, 0, 0.5), 0.3, 35 * M_PI / 180, 0.39);
+  const auto frames = observe(sc, {p});
+  ASSERT_EQ(frames.size(), 1u);
+  CalibrationOptions o;
+  o.fix_principal_point = true;
+  o.fix_aspect_ratio = true;
+  o.zero_distortion = true;
+  const CalibrationResult r = calibrate(frames, truth.size(), o);
+  EXPECT_NEAR(r.model.cx(), (truth.width() - 1) * 0.5, 1e-9);
+  EXPECT_NEAR(r.model.cy(), (truth.height() - 1) * 0.5, 1e-9);
+  EXPECT_DOUBLE_EQ(r.model.params()[4], 0.0);
+  EXPECT_NEAR(r.model.fx(), truth.fx(), 0.05 * truth.fx());
+  EXPECT_NEAR(r.model.fy() / r.model.fx(), 1.0, 1e-9);
+  EXPECT_EQ(r.std_unit[2], 0.0);  // fixed parameters have no variance
+  EXPECT_GT(r.std_unit[0], 0.0);
+  EXPECT_NEAR(r.std_unit[1], r.std_unit[0], 1e-9 * r.std_unit[0]);
+}
+
+TEST(Calibration, FrontoParallelViewsAreDegenerate) {
+  const CameraModel truth = CameraModel::opencv5(1280, 720, 1000, 1000, 639.5, 359.5, {0, 0, 0, 0, 0});
+  const Target target;
+  SyntheticCamera sc(truth, target, noisy(11));
+  std::vector<Pose> poses;
+  for (int i = 0; i < 6; ++i) {
+    poses.push_back(board_pose_at(target, Eigen::Vector3d(-0.1 + 0.04 * i, 0.02 * (i % 3) - 0.02, 0.45 + 0.03 * i),
+                                  0.0, 0.0, 0.1 * i));
+  }
+  const auto frames = observe(sc, poses);
+  ASSERT_EQ(frames.size(), 6u);
+  try {
+    calibrate(frames, truth.size());
+    FAIL() << "fronto-parallel views accepted";
+  } catch (const Error& e) {
+    EXPECT_EQ(e.code(), ErrorCode::kDegenerate) << e.what();
+    std::printf("fronto-parallel: %s\n", e.what());
+  }
+}
+
+TEST(Calibration, BadInputGivesClearErrors) {
+  const cv::Size size(640, 480);
+  EXPECT_THROW(calibrate({}, size), Error);
+  Observation few;
+  few.image_points = {{1, 1}, {2, 2}, {3, 3}};
+  few.board_points = {{0, 0, 0}, {1, 0, 0}, {0, 1, 0}};
+  try {
+    calibrate({few}, size);
+    FAIL();
+  } catch (const Error& e) {
+    EXPECT_EQ(e.code(), ErrorCode::kDegenerate);
+    EXPECT_NE(std::string(e.what()).find("at least 4"), std::string::npos) << e.what();
+  }
+  Observation nan = few;
+  nan.image_points.push_back({NAN, 1});
+  nan.board_points.push_back({1, 1, 0});
+  try {
+    calibrate({nan}, size);
+    FAIL();
+  } catch (const Error& e) {
+    EXPECT_EQ(e.code(), ErrorCode::kInvalidArgument);
+    EXPECT_NE(std::string(e.what()).find("non-finite"), std::string::npos) << e.what();
+  }
+  Observation four = few;
+  four.image_points.push_back({4, 1});
+  four.board_points.push_back({1, 1, 0});
+  try {
+    calibrate({four}, size);  // 8 constraints, 15 unknowns
+    FAIL();
+  } catch (const Error& e) {
+    EXPECT_EQ(e.code(), ErrorCode::kDegenerate);
+    EXPECT_NE(std::string(e.what()).find("too few points"), std::string::npos) << e.what();
+  }
+  Observation mismatch = four;
+  mismatch.board_points.pop_back();
+  EXPECT_THROW(calibrate({mismatch}, size), Error);
+  CalibrationOptions o;
+  o.fixed = {"k9"};
+  EXPECT_THROW(calibrate({four}, size, o), Error);
+  EXPECT_THROW(calibrate({four}, cv::Size(0, 0)), Error);
+}
+
+TEST(Metrics, GroundTruthErrorAndTestError) {
+  const CameraModel truth = c525_reference_model();
+  EXPECT_NEAR(ground_truth_error(truth, truth), 0.0, 1e-9);
+  CameraModel shifted = truth;
+  shifted.params()[2] += 1.5;  // cx off by 1.5 px: every ray lands 1.5 px away
+  EXPECT_NEAR(ground_truth_error(truth, shifted), 1.5, 1e-9);
+  const Target target;
+  SyntheticCamera sc(truth, target);
+  const auto test = observe(sc, test_set_views(truth, target, 10));
+  const TestError te = test_error(truth, test);
+  EXPECT_EQ(te.frames_used, 10);
+  EXPECT_LT(te.rms_px, 0.1);
+  CameraModel wrong = truth;
+  wrong.params()[4] += 0.1;
+  EXPECT_GT(test_error(wrong, test).rms_px, te.rms_px * 3);
+}

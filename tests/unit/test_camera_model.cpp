@@ -1,0 +1,175 @@
+#include <gtest/gtest.h>
+
+#include <cstdio>
+#include <fstream>
+#include <opencv2/calib3d.hpp>
+#include <random>
+
+#include "posecal/camera_model.hpp"
+#include "posecal/error.hpp"
+
+using namespace posecal;
+
+namespace {
+
+const std::string kData = std::string(POSECAL_SOURCE_DIR) + "/data/";
+
+CameraModel strong_model() {
+  return CameraModel::opencv5(1280, 720, 1000, 1010, 650, 350, {-0.25, 0.12, 0.001, -0.002, -0.02});
+}
+
+}  // namespace
+
+TEST(CameraModel, ProjectionMatchesOpenCV) {
+  for (const CameraModel& m : {c525_reference_model(), strong_model()}) {
+    std::mt19937_64 rng(3);
+    std::uniform_real_distribution<double> U(-0.5, 0.5);
+    std::vector<cv::Point3d> pts;
+    for (int i = 0; i < 200; ++i) pts.emplace_back(U(rng), U(rng) * 0.6, 1.0 + U(rng));
+    std::vector<cv::Point2d> ref;
+    cv::projectPoints(pts, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), cv::Mat(m.camera_matrix()),
+                      m.distortion_coefficients(), ref);
+    for (size_t i = 0; i < pts.size(); ++i) {
+      Eigen::Vector2d uv;
+      ASSERT_TRUE(m.project(Eigen::Vector3d(pts[i].x, pts[i].y, pts[i].z), &uv));
+      EXPECT_NEAR(uv.x(), ref[i].x, 1e-9);
+      EXPECT_NEAR(uv.y(), ref[i].y, 1e-9);
+    }
+  }
+}
+
+TEST(CameraModel, JacobiansMatchFiniteDifferences) {
+  const CameraModel m = strong_model();
+  const Eigen::Vector3d p(0.21, -0.13, 0.9);
+  Eigen::Vector2d uv;
+  Eigen::Matrix<double, 2, 3> Jp;
+  Eigen::Matrix<double, 2, Eigen::Dynamic> Jc;
+  ASSERT_TRUE(m.project(p, &uv, &Jp, &Jc));
+  ASSERT_EQ(Jc.cols(), 9);
+  const double h = 1e-6;
+  for (int k = 0; k < 3; ++k) {
+    Eigen::Vector3d a = p, b = p;
+    a[k] += h;
+    b[k] -= h;
+    Eigen::Vector2d ua, ub;
+    m.project(a, &ua);
+    m.project(b, &ub);
+    const Eigen::Vector2d fd = (ua - ub) / (2 * h);
+    EXPECT_NEAR(fd.x(), Jp(0, k), 1e-5 * (1 + std::abs(fd.x())));
+    EXPECT_NEAR(fd.y(), Jp(1, k), 1e-5 * (1 + std::abs(fd.y())));
+  }
+  for (int k = 0; k < 9; ++k) {
+    CameraModel a = m, b = m;
+    a.params()[k] += h;
+    b.params()[k] -= h;
+    Eigen::Vector2d ua, ub;
+    a.project(p, &ua);
+    b.project(p, &ub);
+    const Eigen::Vector2d fd = (ua - ub) / (2 * h);
+    EXPECT_NEAR(fd.x(), Jc(0, k), 1e-5 * (1 + std::abs(fd.x())));
+    EXPECT_NEAR(fd.y(), Jc(1, k), 1e-5 * (1 + std::abs(fd.y())));
+  }
+}
+
+TEST(CameraModel, UnprojectInvertsProjectAndAgreesWithOpenCV) {
+  const CameraModel m = strong_model();
+  std::vector<cv::Point2d> px;
+  for (int v = 0; v < m.height(); v += 37)
+    for (int u = 0; u < m.width(); u += 41) px.emplace_back(u, v);
+  std::vector<cv::Point2d> cvn;
+  cv::undistortPoints(px, cvn, cv::Mat(m.camera_matrix()), m.distortion_coefficients(), cv::noArray(),
+                      cv::noArray(),
+                      cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 200, 1e-14));
+  for (size_t i = 0; i < px.size(); ++i) {
+    Eigen::Vector2d xn, back;
+    ASSERT_TRUE(m.unproject(Eigen::Vector2d(px[i].x, px[i].y), &xn)) << px[i];
+    ASSERT_TRUE(m.project(Eigen::Vector3d(xn.x(), xn.y(), 1), &back));
+    EXPECT_NEAR(back.x(), px[i].x, 1e-7);
+    EXPECT_NEAR(back.y(), px[i].y, 1e-7);
+    EXPECT_NEAR(xn.x(), cvn[i].x, 1e-6);
+    EXPECT_NEAR(xn.y(), cvn[i].y, 1e-6);
+  }
+}
+
+TEST(CameraModel, UnprojectRejectsPixelsWithoutPreimage) {
+  // k1 = -0.6 alone folds over at r = 1/sqrt(1.8) = 0.745 (max distorted radius 0.497): pixels
+  // beyond that radius have no preimage.
+  const CameraModel m = CameraModel::opencv5(1000, 1000, 500, 500, 499.5, 499.5, {-0.6, 0, 0, 0, 0});
+  Eigen::Vector2d xn;
+  EXPECT_TRUE(m.unproject(Eigen::Vector2d(499.5 + 0.4 * 500, 499.5), &xn));
+  EXPECT_FALSE(m.unproject(Eigen::Vector2d(499.5 + 0.6 * 500, 499.5), &xn));
+  const cv::Mat dm = m.distortion_map(50);
+  EXPECT_TRUE(std::isnan(dm.at<float>(0, 0)));  // the corner has no preimage
+  EXPECT_FALSE(std::isnan(dm.at<float>(10, 10)));
+}
+
+TEST(CameraModel, DistortionMap) {
+  const CameraModel none = CameraModel::opencv5(640, 480, 500, 500, 320, 240, {0, 0, 0, 0, 0});
+  const cv::Mat z = none.distortion_map(10);
+  double mx = 0;
+  cv::minMaxLoc(z, nullptr, &mx);
+  EXPECT_LT(mx, 1e-3);
+  const CameraModel m = strong_model();
+  const cv::Mat d = m.distortion_map(8);
+  EXPECT_EQ(d.cols, (1280 + 7) / 8);
+  EXPECT_EQ(d.rows, (720 + 7) / 8);
+  // Barrel distortion grows towards the corners.
+  EXPECT_GT(d.at<float>(0, 0), 10 * d.at<float>(d.rows / 2, d.cols / 2) + 1.0);
+}
+
+TEST(CameraModel, ReadsTheC525ReferenceFile) {
+  const CameraModel m = read_camera_model(kData + "c525_reference.yml");
+  const CameraModel ref = c525_reference_model();
+  EXPECT_EQ(m.width(), 1280);
+  EXPECT_EQ(m.height(), 720);
+  for (int i = 0; i < 9; ++i) EXPECT_DOUBLE_EQ(m.params()[i], ref.params()[i]);
+}
+
+TEST(CameraModel, WriteReadRoundTripYamlAndJson) {
+  const CameraModel m = strong_model();
+  for (const std::string ext : {".yml", ".json"}) {
+    const std::string path = testing::TempDir() + "/posecal_model" + ext;
+    CalibrationFileExtras extras;
+    extras.nr_of_frames = 9;
+    extras.avg_reprojection_error = 0.25;
+    extras.param_std = std::vector<double>(9, 0.5);
+    write_camera_model(path, m, extras);
+    const CameraModel r = read_camera_model(path);
+    for (int i = 0; i < 9; ++i) EXPECT_DOUBLE_EQ(r.params()[i], m.params()[i]) << ext;
+    cv::FileStorage fs(path, cv::FileStorage::READ);
+    EXPECT_EQ(static_cast<int>(fs["nr_of_frames"]), 9);
+    EXPECT_DOUBLE_EQ(static_cast<double>(fs["avg_reprojection_error"]), 0.25);
+    std::remove(path.c_str());
+  }
+}
+
+TEST(CameraModel, BadFilesGiveClearErrors) {
+  auto expect_error = [](const std::string& path, ErrorCode code, const std::string& needle) {
+    try {
+      read_camera_model(path);
+      FAIL() << "no error for " << path;
+    } catch (const Error& e) {
+      EXPECT_EQ(e.code(), code) << e.what();
+      EXPECT_NE(std::string(e.what()).find(needle), std::string::npos) << e.what();
+    }
+  };
+  expect_error("/nonexistent/model.yml", ErrorCode::kIo, "cannot open");
+  const std::string dir = testing::TempDir();
+  {
+    std::ofstream(dir + "/garbage.yml") << "%YAML:1.0\n---\nfoo: [1, 2\n";
+    expect_error(dir + "/garbage.yml", ErrorCode::kInvalidArgument, "garbage.yml");
+  }
+  {
+    std::ofstream(dir + "/missing.yml") << "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\n";
+    expect_error(dir + "/missing.yml", ErrorCode::kInvalidArgument, "camera_matrix");
+  }
+  {
+    std::ofstream(dir + "/nan.yml")
+        << "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\ncamera_matrix: !!opencv-matrix\n"
+           "   rows: 3\n   cols: 3\n   dt: d\n   data: [ .Nan, 0., 320., 0., 500., 240., 0., 0., 1. ]\n"
+           "distortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n"
+           "   data: [ 0., 0., 0., 0., 0. ]\n";
+    expect_error(dir + "/nan.yml", ErrorCode::kInvalidArgument, "not finite");
+  }
+  EXPECT_THROW(CameraModel(640, 480, LensModel::kOpenCV5, {1, 2, 3}), Error);
+}

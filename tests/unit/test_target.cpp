@@ -1,0 +1,188 @@
+#include <gtest/gtest.h>
+
+#include <cstdio>
+#include <fstream>
+#include <opencv2/aruco/charuco.hpp>
+#include <opencv2/imgcodecs.hpp>
+
+#include "posecal/error.hpp"
+#include "posecal/synthetic.hpp"
+#include "posecal/target.hpp"
+#include "posecal/views.hpp"
+
+using namespace posecal;
+
+TEST(TargetSpec, ParsesBothKinds) {
+  const TargetSpec c = TargetSpec::parse("charuco:9x6:0.028:0.0182:DICT_4X4_50");
+  EXPECT_EQ(c.type, TargetType::kCharuco);
+  EXPECT_EQ(c.cols, 9);
+  EXPECT_EQ(c.rows, 6);
+  EXPECT_DOUBLE_EQ(c.square_length_m, 0.028);
+  EXPECT_DOUBLE_EQ(c.marker_length_m, 0.0182);
+  EXPECT_EQ(TargetSpec::parse(c.to_string()).to_string(), c.to_string());
+  const TargetSpec b = TargetSpec::parse("chessboard:9x6:0.025");
+  EXPECT_EQ(b.type, TargetType::kChessboard);
+  EXPECT_EQ(Target(b).num_corners(), 54);
+  EXPECT_EQ(Target(c).num_corners(), 40);
+  // Default is the paper's board: 9x6 squares, DICT_4X4_50, marker/square 0.65.
+  const TargetSpec d;
+  EXPECT_NEAR(d.marker_length_m / d.square_length_m, 0.65, 1e-9);
+  EXPECT_EQ(d.dictionary, "DICT_4X4_50");
+}
+
+TEST(TargetSpec, RejectsBadSpecsWithTheCause) {
+  const std::vector<std::pair<std::string, std::string>> cases = {
+      {"", "empty"},
+      {"circles:4x11:0.02", "unknown target type"},
+      {"charuco:9x6:0.028:0.0182", "expected charuco"},
+      {"charuco:9by6:0.028:0.0182:DICT_4X4_50", "grid"},
+      {"charuco:9x6:abc:0.0182:DICT_4X4_50", "not a number"},
+      {"charuco:9x6:-0.028:0.0182:DICT_4X4_50", "positive"},
+      {"charuco:9x6:0.028:0.03:DICT_4X4_50", "marker length"},
+      {"charuco:9x6:0.028:0.0182:DICT_9X9_1", "unknown ArUco dictionary"},
+      {"charuco:20x20:0.028:0.0182:DICT_4X4_50", "markers"},
+      {"chessboard:1x6:0.025", "grid"},
+      {"chessboard:9x6:28", "implausible"},
+  };
+  for (const auto& [spec, needle] : cases) {
+    try {
+      TargetSpec::parse(spec);
+      ADD_FAILURE() << "accepted '" << spec << "'";
+    } catch (const Error& e) {
+      EXPECT_EQ(e.code(), ErrorCode::kInvalidArgument);
+      EXPECT_NE(std::string(e.what()).find(needle), std::string::npos) << spec << ": " << e.what();
+    }
+  }
+}
+
+TEST(Target, BoardFrameMatchesOpenCVCharuco) {
+  const Target t;
+  auto dict = cv::aruco::getPredefinedDictionary(cv::aruco::DICT_4X4_50);
+  auto board = cv::aruco::CharucoBoard::create(9, 6, 0.028f, 0.0182f, dict);
+  ASSERT_EQ(static_cast<int>(board->chessboardCorners.size()), t.num_corners());
+  for (int i = 0; i < t.num_corners(); ++i) {
+    EXPECT_NEAR(t.corners()[i].x, board->chessboardCorners[i].x, 1e-6);
+    EXPECT_NEAR(t.corners()[i].y, board->chessboardCorners[i].y, 1e-6);
+  }
+}
+
+namespace {
+
+struct Offset {
+  double mean_x = 0, mean_y = 0, rms = 0;
+  size_t n = 0;
+};
+
+Offset compare(const std::vector<cv::Point2d>& found, const std::vector<int>& ids,
+               const std::vector<cv::Point2d>& truth) {
+  Offset o;
+  for (size_t i = 0; i < found.size(); ++i) {
+    const cv::Point2d d = found[i] - truth[ids[i]];
+    o.mean_x += d.x;
+    o.mean_y += d.y;
+    o.rms += d.dot(d);
+  }
+  o.n = found.size();
+  o.mean_x /= o.n;
+  o.mean_y /= o.n;
+  o.rms = std::sqrt(o.rms / o.n);
+  return o;
+}
+
+}  // namespace
+
+// One scene, both detectors, compared with the true projections: OpenCV 4.6's ChArUco
+// interpolation is offset by (+0.5, +0.5) px, the chessboard detector is not; ours corrects the
+// ChArUco path so both agree with the pixel-centre convention.
+TEST(Target, CharucoHalfPixelOffsetIsCorrected) {
+  const CameraModel cam = CameraModel::opencv5(1280, 720, 1000, 1000, 639.5, 359.5, {0, 0, 0, 0, 0});
+  const Target charuco(TargetSpec::parse("charuco:9x6:0.028:0.0182:DICT_4X4_50"));
+  const Target chess(TargetSpec::parse("chessboard:8x5:0.028"));  // the same 9x6 squares
+  const Pose pose = board_pose_at(charuco, Eigen::Vector3d(0.02, -0.01, 0.45), 0.7, 0.5, 0.3);
+  RenderOptions ro;
+  ro.background_texture = 0;
+  SyntheticCamera sc_charuco(cam, charuco, ro), sc_chess(cam, chess, ro);
+  const cv::Mat img_charuco = sc_charuco.render(pose), img_chess = sc_chess.render(pose);
+
+  // Raw OpenCV ChArUco path: shows the bias.
+  auto dict = cv::aruco::getPredefinedDictionary(cv::aruco::DICT_4X4_50);
+  auto board = cv::aruco::CharucoBoard::create(9, 6, 0.028f, 0.0182f, dict);
+  std::vector<std::vector<cv::Point2f>> mc;
+  std::vector<int> mids;
+  cv::aruco::detectMarkers(img_charuco, dict, mc, mids);
+  std::vector<cv::Point2f> raw;
+  std::vector<int> raw_ids;
+  cv::aruco::interpolateCornersCharuco(mc, mids, img_charuco, board, raw, raw_ids);
+  ASSERT_EQ(raw.size(), 40u);
+  const auto truth_charuco = sc_charuco.true_corners(pose);
+  const Offset raw_off = compare(std::vector<cv::Point2d>(raw.begin(), raw.end()), raw_ids, truth_charuco);
+  EXPECT_NEAR(raw_off.mean_x, 0.5, 0.15);
+  EXPECT_NEAR(raw_off.mean_y, 0.5, 0.15);
+
+  const Detection d1 = charuco.detect(img_charuco);
+  ASSERT_EQ(d1.size(), 40u);
+  const Offset o1 = compare(d1.image_points, d1.ids, truth_charuco);
+  const Detection d2 = chess.detect(img_chess);
+  ASSERT_EQ(d2.size(), 40u);
+  const Offset o2 = compare(d2.image_points, d2.ids, sc_chess.true_corners(pose));
+  EXPECT_LT(std::abs(o1.mean_x), 0.05);
+  EXPECT_LT(std::abs(o1.mean_y), 0.05);
+  EXPECT_LT(std::abs(o2.mean_x), 0.05);
+  EXPECT_LT(std::abs(o2.mean_y), 0.05);
+  EXPECT_LT(o1.rms, 0.1);
+  EXPECT_LT(o2.rms, 0.1);
+  std::printf("charuco raw offset (%.3f, %.3f); corrected (%.4f, %.4f) rms %.4f; chessboard (%.4f, %.4f) rms %.4f\n",
+              raw_off.mean_x, raw_off.mean_y, o1.mean_x, o1.mean_y, o1.rms, o2.mean_x, o2.mean_y, o2.rms);
+}
+
+TEST(Target, DetectRejectsBadImagesWithoutCrashing) {
+  const Target t;
+  EXPECT_THROW(t.detect(cv::Mat()), Error);
+  EXPECT_THROW(t.detect(cv::Mat(100, 100, CV_32F, cv::Scalar(0))), Error);
+  EXPECT_TRUE(t.detect(cv::Mat(100, 100, CV_8U, cv::Scalar(0))).empty());
+  EXPECT_TRUE(t.detect(cv::Mat(3, 3, CV_8UC3, cv::Scalar(0, 0, 0))).empty());
+  cv::Mat noise(480, 640, CV_8U);
+  cv::randu(noise, 0, 255);
+  EXPECT_LT(t.detect(noise).size(), 4u);
+  const Target chess(TargetSpec::parse("chessboard:9x6:0.025"));
+  EXPECT_TRUE(chess.detect(noise).empty());
+}
+
+TEST(Target, PrintablePngHasExactPhysicalScaleAndIsDetectable) {
+  const Target t;
+  const std::string path = testing::TempDir() + "/posecal_board.png";
+  t.write_printable(path, 150.0, 0.01);
+  const cv::Mat img = cv::imread(path, cv::IMREAD_GRAYSCALE);
+  ASSERT_FALSE(img.empty());
+  const double px_per_m = 150.0 / 0.0254;
+  EXPECT_NEAR(img.cols, (0.252 + 0.02) * px_per_m, 1.0);
+  EXPECT_NEAR(img.rows, (0.168 + 0.02) * px_per_m, 1.0);
+  // pHYs chunk: 150 dpi = 5906 pixels per metre.
+  std::ifstream f(path, std::ios::binary);
+  const std::string bytes((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+  const size_t at = bytes.find("pHYs");
+  ASSERT_NE(at, std::string::npos);
+  const auto* p = reinterpret_cast<const unsigned char*>(bytes.data() + at + 4);
+  EXPECT_EQ((p[0] << 24) | (p[1] << 16) | (p[2] << 8) | p[3], 5906);
+  const Detection d = t.detect(img);
+  EXPECT_EQ(d.size(), 40u);
+  // Corner spacing equals the square length at this scale.
+  const double spacing = cv::norm(d.image_points[1] - d.image_points[0]);
+  EXPECT_NEAR(spacing, 0.028 * px_per_m, 0.2);
+  std::remove(path.c_str());
+}
+
+TEST(Target, PrintablePdfIsWellFormed) {
+  const Target t;
+  const std::string path = testing::TempDir() + "/posecal_board.pdf";
+  t.write_printable(path, 300.0, 0.01);
+  std::ifstream f(path, std::ios::binary);
+  const std::string bytes((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+  EXPECT_EQ(bytes.rfind("%PDF-1.4", 0), 0u);
+  EXPECT_NE(bytes.find("%%EOF"), std::string::npos);
+  // Page size = board + margins in points (1/72 in): 0.272 m x 0.188 m.
+  EXPECT_NE(bytes.find("/MediaBox [0 0 771.0236 532.9134]"), std::string::npos);
+  EXPECT_THROW(t.write_printable(testing::TempDir() + "/x.bmp"), Error);
+  EXPECT_THROW(t.write_printable(testing::TempDir() + "/x.png", 10.0), Error);
+  std::remove(path.c_str());
+}
