@@ -1,0 +1,70 @@
+#include "abi_common.hpp"
+
+#include <algorithm>
+#include <cstring>
+
+namespace posecal::abi {
+
+namespace {
+thread_local std::string t_last_error;
+}
+
+void set_error(const std::string& message) { t_last_error = message; }
+void clear_error() { t_last_error.clear(); }
+const char* last_error() { return t_last_error.c_str(); }
+
+posecal_status status_of(ErrorCode code) {
+  switch (code) {
+    case ErrorCode::kInvalidArgument: return POSECAL_E_INVALID_ARGUMENT;
+    case ErrorCode::kNotFound: return POSECAL_E_NOT_FOUND;
+    case ErrorCode::kBufferTooSmall: return POSECAL_E_BUFFER_TOO_SMALL;
+    case ErrorCode::kTimeout: return POSECAL_E_TIMEOUT;
+    case ErrorCode::kDevice: return POSECAL_E_DEVICE;
+    case ErrorCode::kState: return POSECAL_E_STATE;
+    case ErrorCode::kIo: return POSECAL_E_IO;
+    case ErrorCode::kInternal: return POSECAL_E_INTERNAL;
+    case ErrorCode::kDegenerate: return POSECAL_E_DEGENERATE;
+    case ErrorCode::kUnsupported: return POSECAL_E_UNSUPPORTED;
+  }
+  return POSECAL_E_INTERNAL;
+}
+
+void require(const void* p, const char* name) {
+  if (p == nullptr) throw Error(ErrorCode::kInvalidArgument, std::string(name) + " is NULL");
+}
+
+posecal_status copy_out(const std::string& text, char* buf, size_t* size) {
+  require(size, "size");
+  const size_t needed = text.size() + 1;
+  if (buf == nullptr || *size < needed) {
+    *size = needed;
+    set_error("buffer too small: " + std::to_string(needed) + " bytes needed");
+    return POSECAL_E_BUFFER_TOO_SMALL;
+  }
+  std::memcpy(buf, text.c_str(), needed);
+  *size = needed;
+  return POSECAL_OK;
+}
+
+nlohmann::json parse_options(const char* json_text, const std::vector<std::string>& allowed,
+                             const char* what) {
+  if (json_text == nullptr || json_text[0] == '\0') return nlohmann::json::object();
+  nlohmann::json j;
+  try {
+    j = nlohmann::json::parse(json_text);
+  } catch (const nlohmann::json::parse_error& e) {
+    throw Error(ErrorCode::kInvalidArgument, std::string(what) + " is not valid JSON: " + e.what());
+  }
+  if (!j.is_object()) throw Error(ErrorCode::kInvalidArgument, std::string(what) + " must be a JSON object");
+  for (const auto& item : j.items()) {
+    if (std::find(allowed.begin(), allowed.end(), item.key()) == allowed.end()) {
+      std::string list;
+      for (const auto& a : allowed) list += (list.empty() ? "" : ", ") + a;
+      throw Error(ErrorCode::kInvalidArgument,
+                  std::string(what) + ": unknown key '" + item.key() + "' (known: " + list + ")");
+    }
+  }
+  return j;
+}
+
+}  // namespace posecal::abi

@@ -1,0 +1,79 @@
+#include "json_report.hpp"
+
+#include <cmath>
+
+#include "posecal/error.hpp"
+
+namespace posecal::abi {
+
+namespace {
+
+// JSON has no NaN/Inf: a non-finite number is written as null, never as a valid-looking value.
+nlohmann::json number(double v) { return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr); }
+
+bool ends_with(const std::string& s, const std::string& suffix) {
+  return s.size() >= suffix.size() && s.compare(s.size() - suffix.size(), suffix.size(), suffix) == 0;
+}
+
+}  // namespace
+
+nlohmann::json device_json(const DeviceInfo& d) {
+  return {{"uri", d.uri},       {"backend", d.backend}, {"id", d.id},
+          {"vendor", d.vendor}, {"model", d.model},     {"serial", d.serial},
+          {"transport", d.transport}};
+}
+
+nlohmann::json calibration_json(const CalibrationResult& r) {
+  nlohmann::json j;
+  const auto& names = r.model.param_names();
+  nlohmann::json std_scaled, std_unit, iod, fixed;
+  for (size_t i = 0; i < names.size(); ++i) {
+    j[names[i]] = number(r.model.params()[i]);
+    std_scaled[names[i]] = number(r.std_scaled[i]);
+    std_unit[names[i]] = number(r.std_unit[i]);
+    iod[names[i]] = number(r.index_of_dispersion[i]);
+    fixed[names[i]] = static_cast<bool>(r.fixed[i]);
+  }
+  j["model"] = lens_model_name(r.model.lens_model());
+  j["image_width"] = r.model.width();
+  j["image_height"] = r.model.height();
+  j["std"] = std_scaled;
+  j["std_unit"] = std_unit;
+  j["index_of_dispersion"] = iod;
+  j["fixed"] = fixed;
+  j["rms"] = number(r.rms_px);
+  j["eps_res"] = number(r.rms_px);
+  j["residual_sigma"] = number(std::sqrt(r.residual_variance));
+  nlohmann::json per_frame = nlohmann::json::array();
+  for (double v : r.frame_rms_px) per_frame.push_back(number(v));
+  j["per_frame_rms"] = per_frame;
+  j["points"] = r.num_points;
+  j["iterations"] = r.iterations;
+  j["solver_converged"] = r.converged;
+  const int n = static_cast<int>(names.size());
+  const Eigen::MatrixXd cov = r.covariance_scaled();
+  nlohmann::json c = nlohmann::json::array();
+  for (int a = 0; a < n; ++a) {
+    nlohmann::json row = nlohmann::json::array();
+    for (int b = 0; b < n; ++b) row.push_back(number(cov(a, b)));
+    c.push_back(row);
+  }
+  j["covariance"] = c;
+  j["covariance_order"] = names;
+  return j;
+}
+
+void save_calibration(const std::string& path, const CalibrationResult& r,
+                      const std::vector<std::pair<std::string, std::string>>& extra_strings) {
+  if (!(ends_with(path, ".yml") || ends_with(path, ".yaml") || ends_with(path, ".json"))) {
+    throw Error(ErrorCode::kInvalidArgument, "output file '" + path + "': use .yml, .yaml or .json");
+  }
+  CalibrationFileExtras extras;
+  extras.nr_of_frames = static_cast<int>(r.poses.size());
+  extras.avg_reprojection_error = r.rms_px;
+  extras.param_std = r.std_scaled;
+  extras.strings = extra_strings;
+  write_camera_model(path, r.model, extras);
+}
+
+}  // namespace posecal::abi
