@@ -19,8 +19,10 @@ bool CalibrationOptions::is_valid(std::string* error) const {
     if (error) *error = why;
     return false;
   };
-  if (max_iterations < 1 || max_iterations > 10000) return fail("max_iterations must be in [1, 10000]");
-  if (!(function_tolerance > 0) || !(parameter_tolerance > 0)) return fail("tolerances must be > 0");
+  if (max_iterations < 1 || max_iterations > 10000)
+    return fail("max_iterations must be in [1, 10000]");
+  if (!(function_tolerance > 0) || !(parameter_tolerance > 0))
+    return fail("tolerances must be > 0");
   if (!(max_relative_focal_std > 0)) return fail("max_relative_focal_std must be > 0");
   const auto& names = intrinsic_names(lens_model);
   for (const auto& f : fixed) {
@@ -112,8 +114,8 @@ bool zhang_initial(const std::vector<Observation>& frames, cv::Size size, bool f
   int flags = cv::CALIB_FIX_K1 | cv::CALIB_FIX_K2 | cv::CALIB_FIX_K3 | cv::CALIB_ZERO_TANGENT_DIST;
   if (fix_pp) flags |= cv::CALIB_FIX_PRINCIPAL_POINT;
   if (fix_aspect) flags |= cv::CALIB_FIX_ASPECT_RATIO;
-  cv::Mat K = (cv::Mat_<double>(3, 3) << 1, 0, (size.width - 1) * 0.5, 0, 1, (size.height - 1) * 0.5,
-               0, 0, 1);
+  cv::Mat K = (cv::Mat_<double>(3, 3) << 1, 0, (size.width - 1) * 0.5, 0, 1,
+               (size.height - 1) * 0.5, 0, 0, 1);
   cv::Mat D = cv::Mat::zeros(1, 5, CV_64F);
   std::vector<cv::Mat> rvecs, tvecs;
   try {
@@ -125,8 +127,9 @@ bool zhang_initial(const std::vector<Observation>& frames, cv::Size size, bool f
       K.at<double>(1, 1) = fix_aspect ? K0.at<double>(0, 0) : K0.at<double>(1, 1);
       flags |= cv::CALIB_USE_INTRINSIC_GUESS;
     }
-    cv::calibrateCamera(obj, img, size, K, D, rvecs, tvecs, flags,
-                        cv::TermCriteria(cv::TermCriteria::COUNT + cv::TermCriteria::EPS, 30, 1e-9));
+    cv::calibrateCamera(
+        obj, img, size, K, D, rvecs, tvecs, flags,
+        cv::TermCriteria(cv::TermCriteria::COUNT + cv::TermCriteria::EPS, 30, 1e-9));
   } catch (const cv::Exception&) {
     return false;
   }
@@ -180,7 +183,8 @@ CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size ima
                             const CalibrationOptions& options, const WarmStart* warm_start) {
   const auto t0 = std::chrono::steady_clock::now();
   std::string why;
-  if (!options.is_valid(&why)) throw Error(ErrorCode::kInvalidArgument, "calibration options: " + why);
+  if (!options.is_valid(&why))
+    throw Error(ErrorCode::kInvalidArgument, "calibration options: " + why);
   if (image_size.width <= 0 || image_size.height <= 0) {
     throw Error(ErrorCode::kInvalidArgument, "calibration: image size must be positive");
   }
@@ -203,16 +207,17 @@ CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size ima
   }
   for (const auto& f : options.fixed) fix(f);
   const int n_free_intr = static_cast<int>(std::count(fixed.begin(), fixed.end(), false));
-  if (n_free_intr == 0) throw Error(ErrorCode::kInvalidArgument, "calibration: every parameter fixed");
+  if (n_free_intr == 0)
+    throw Error(ErrorCode::kInvalidArgument, "calibration: every parameter fixed");
 
   int n_points = 0;
   for (const auto& f : frames) n_points += static_cast<int>(f.size());
   const int n_unknowns = n_free_intr + 6 * static_cast<int>(frames.size());
   if (2 * n_points <= n_unknowns) {
-    throw Error(ErrorCode::kDegenerate,
-                "calibration: too few points: " + std::to_string(n_points) + " points give " +
-                    std::to_string(2 * n_points) + " constraints for " +
-                    std::to_string(n_unknowns) + " unknowns");
+    throw Error(ErrorCode::kDegenerate, "calibration: too few points: " + std::to_string(n_points) +
+                                            " points give " + std::to_string(2 * n_points) +
+                                            " constraints for " + std::to_string(n_unknowns) +
+                                            " unknowns");
   }
 
   // Initial solution.
@@ -261,9 +266,9 @@ CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size ima
   ceres::Problem problem(popt);
   for (size_t i = 0; i < frames.size(); ++i) {
     for (size_t k = 0; k < frames[i].size(); ++k) {
-      problem.AddResidualBlock(make_cost(lens, frames[i].image_points[k], frames[i].board_points[k],
-                                         aspect),
-                               nullptr, intr.data(), rt[i].data());
+      problem.AddResidualBlock(
+          make_cost(lens, frames[i].image_points[k], frames[i].board_points[k], aspect), nullptr,
+          intr.data(), rt[i].data());
     }
   }
   std::vector<int> fixed_idx;
@@ -284,7 +289,8 @@ CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size ima
   ceres::Solver::Summary summary;
   ceres::Solve(sopt, &problem, &summary);
   if (summary.termination_type == ceres::FAILURE || !summary.IsSolutionUsable()) {
-    throw Error(ErrorCode::kDegenerate, "calibration: bundle adjustment failed: " + summary.message);
+    throw Error(ErrorCode::kDegenerate,
+                "calibration: bundle adjustment failed: " + summary.message);
   }
   if (aspect > 0) intr[1] = intr[0] * aspect;
 
@@ -363,7 +369,8 @@ CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size ima
   }
   for (int i = 0; i < n_cols; ++i)
     if (scale[i] == 0) ++res.rank_deficiency;
-  const Eigen::MatrixXd Ainv = eig.eigenvectors() * inv_ev.asDiagonal() * eig.eigenvectors().transpose();
+  const Eigen::MatrixXd Ainv =
+      eig.eigenvectors() * inv_ev.asDiagonal() * eig.eigenvectors().transpose();
   const Eigen::MatrixXd cov_tangent = scale.asDiagonal() * Ainv * scale.asDiagonal();
 
   // Back to the ambient order (all intrinsics, then 6 per frame); fixed rows/columns stay 0.
@@ -377,7 +384,8 @@ CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size ima
   }
   res.covariance = Eigen::MatrixXd::Zero(n_amb, n_amb);
   for (int a = 0; a < n_cols; ++a)
-    for (int b = 0; b < n_cols; ++b) res.covariance(amb_of_tangent[a], amb_of_tangent[b]) = cov_tangent(a, b);
+    for (int b = 0; b < n_cols; ++b)
+      res.covariance(amb_of_tangent[a], amb_of_tangent[b]) = cov_tangent(a, b);
   if (aspect > 0) {
     // fy = aspect * fx: its variance follows from fx's.
     res.covariance.row(1) = res.covariance.row(0) * aspect;
@@ -392,7 +400,8 @@ CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size ima
     res.std_unit.push_back(s_unit);
     res.std_scaled.push_back(s_unit * sigma);
     // Index of dispersion sigma^2 / |C| (paper §4.1; sigma^2 where C = 0).
-    res.index_of_dispersion.push_back(value != 0.0 ? s_unit * s_unit / std::abs(value) : s_unit * s_unit);
+    res.index_of_dispersion.push_back(value != 0.0 ? s_unit * s_unit / std::abs(value)
+                                                   : s_unit * s_unit);
   }
 
   // Degeneracy: an unobservable direction, or a focal length the views cannot pin down.
@@ -424,10 +433,12 @@ CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size ima
   }
   for (int i = 0; i < n_intr; ++i) {
     if (!std::isfinite(res.std_unit[i])) {
-      throw Error(ErrorCode::kDegenerate, "calibration: covariance of " + names[i] + " is not finite");
+      throw Error(ErrorCode::kDegenerate,
+                  "calibration: covariance of " + names[i] + " is not finite");
     }
   }
-  res.solve_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+  res.solve_ms =
+      std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
   return res;
 }
 

@@ -54,7 +54,8 @@ Uri Uri::parse(const std::string& text) {
     return u;
   }
   u.scheme = text.substr(0, sep);
-  if (u.scheme.empty()) throw Error(ErrorCode::kInvalidArgument, "camera URI '" + text + "' has no scheme");
+  if (u.scheme.empty())
+    throw Error(ErrorCode::kInvalidArgument, "camera URI '" + text + "' has no scheme");
   for (char c : u.scheme) {
     if (!std::isalnum(static_cast<unsigned char>(c)) && c != '+' && c != '-' && c != '.') {
       throw Error(ErrorCode::kInvalidArgument, "camera URI '" + text + "' has an invalid scheme");
@@ -73,10 +74,14 @@ Uri Uri::parse(const std::string& text) {
       if (!pair.empty()) {
         const size_t eq = pair.find('=');
         const std::string key = percent_decode(pair.substr(0, eq), text);
-        const std::string value = eq == std::string::npos ? "" : percent_decode(pair.substr(eq + 1), text);
-        if (key.empty()) throw Error(ErrorCode::kInvalidArgument, "camera URI '" + text + "' has an empty query key");
+        const std::string value =
+            eq == std::string::npos ? "" : percent_decode(pair.substr(eq + 1), text);
+        if (key.empty())
+          throw Error(ErrorCode::kInvalidArgument,
+                      "camera URI '" + text + "' has an empty query key");
         if (u.query.count(key)) {
-          throw Error(ErrorCode::kInvalidArgument, "camera URI '" + text + "' repeats '" + key + "'");
+          throw Error(ErrorCode::kInvalidArgument,
+                      "camera URI '" + text + "' repeats '" + key + "'");
         }
         u.query[key] = value;
       }
@@ -88,26 +93,37 @@ Uri Uri::parse(const std::string& text) {
 
 const char* pixel_format_name(PixelFormat f) {
   switch (f) {
-    case PixelFormat::kMono8: return "Mono8";
-    case PixelFormat::kMono16: return "Mono16";
-    case PixelFormat::kBGR8: return "BGR8";
-    case PixelFormat::kRGB8: return "RGB8";
-    case PixelFormat::kBayerRG8: return "BayerRG8";
-    case PixelFormat::kBayerGR8: return "BayerGR8";
-    case PixelFormat::kBayerGB8: return "BayerGB8";
-    case PixelFormat::kBayerBG8: return "BayerBG8";
-    case PixelFormat::kYUYV: return "YUYV";
-    case PixelFormat::kMJPEG: return "MJPEG";
-    case PixelFormat::kUnknown: return "Unknown";
+    case PixelFormat::kMono8:
+      return "Mono8";
+    case PixelFormat::kMono16:
+      return "Mono16";
+    case PixelFormat::kBGR8:
+      return "BGR8";
+    case PixelFormat::kRGB8:
+      return "RGB8";
+    case PixelFormat::kBayerRG8:
+      return "BayerRG8";
+    case PixelFormat::kBayerGR8:
+      return "BayerGR8";
+    case PixelFormat::kBayerGB8:
+      return "BayerGB8";
+    case PixelFormat::kBayerBG8:
+      return "BayerBG8";
+    case PixelFormat::kYUYV:
+      return "YUYV";
+    case PixelFormat::kMJPEG:
+      return "MJPEG";
+    case PixelFormat::kUnknown:
+      return "Unknown";
   }
   return "Unknown";
 }
 
 PixelFormat pixel_format_from_name(const std::string& name) {
-  for (PixelFormat f : {PixelFormat::kMono8, PixelFormat::kMono16, PixelFormat::kBGR8,
-                        PixelFormat::kRGB8, PixelFormat::kBayerRG8, PixelFormat::kBayerGR8,
-                        PixelFormat::kBayerGB8, PixelFormat::kBayerBG8, PixelFormat::kYUYV,
-                        PixelFormat::kMJPEG}) {
+  for (PixelFormat f :
+       {PixelFormat::kMono8, PixelFormat::kMono16, PixelFormat::kBGR8, PixelFormat::kRGB8,
+        PixelFormat::kBayerRG8, PixelFormat::kBayerGR8, PixelFormat::kBayerGB8,
+        PixelFormat::kBayerBG8, PixelFormat::kYUYV, PixelFormat::kMJPEG}) {
     if (name == pixel_format_name(f)) return f;
   }
   return PixelFormat::kUnknown;
@@ -115,10 +131,14 @@ PixelFormat pixel_format_from_name(const std::string& name) {
 
 const char* camera_state_name(CameraState s) {
   switch (s) {
-    case CameraState::kOpened: return "opened";
-    case CameraState::kConfigured: return "configured";
-    case CameraState::kStreaming: return "streaming";
-    case CameraState::kDisconnected: return "disconnected";
+    case CameraState::kOpened:
+      return "opened";
+    case CameraState::kConfigured:
+      return "configured";
+    case CameraState::kStreaming:
+      return "streaming";
+    case CameraState::kDisconnected:
+      return "disconnected";
   }
   return "unknown";
 }
@@ -185,8 +205,8 @@ std::unique_ptr<Camera> CameraManager::open(const std::string& uri_text) {
   if (!backend) {
     std::string known;
     for (const auto& s : schemes()) known += (known.empty() ? "" : ", ") + s;
-    throw Error(ErrorCode::kInvalidArgument,
-                "camera URI '" + uri_text + "': unknown scheme '" + uri.scheme + "' (known: " + known + ")");
+    throw Error(ErrorCode::kInvalidArgument, "camera URI '" + uri_text + "': unknown scheme '" +
+                                                 uri.scheme + "' (known: " + known + ")");
   }
   return backend->open(uri);
 }
@@ -207,8 +227,9 @@ cv::Mat convert_to_engine(PixelFormat format, const void* data, size_t bytes, in
     if (stride < static_cast<size_t>(width) * bpp ||
         bytes < stride * static_cast<size_t>(height - 1) + static_cast<size_t>(width) * bpp) {
       throw Error(ErrorCode::kInvalidArgument,
-                  std::string("frame conversion: buffer too small for ") + pixel_format_name(format) +
-                      " " + std::to_string(width) + "x" + std::to_string(height));
+                  std::string("frame conversion: buffer too small for ") +
+                      pixel_format_name(format) + " " + std::to_string(width) + "x" +
+                      std::to_string(height));
     }
     return stride;
   };
@@ -268,8 +289,8 @@ cv::Mat convert_to_engine(PixelFormat format, const void* data, size_t bytes, in
     case PixelFormat::kUnknown:
       break;
   }
-  throw Error(ErrorCode::kUnsupported, std::string("pixel format ") + pixel_format_name(format) +
-                                           " is not supported");
+  throw Error(ErrorCode::kUnsupported,
+              std::string("pixel format ") + pixel_format_name(format) + " is not supported");
 }
 
 }  // namespace posecal

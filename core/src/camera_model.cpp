@@ -1,7 +1,8 @@
 #include "posecal/camera_model.hpp"
 
-#include <Eigen/Dense>
 #include <ceres/jet.h>
+
+#include <Eigen/Dense>
 #include <ctime>
 #include <limits>
 #include <opencv2/core/persistence.hpp>
@@ -12,16 +13,26 @@ namespace posecal {
 
 const char* error_code_name(ErrorCode code) {
   switch (code) {
-    case ErrorCode::kInvalidArgument: return "invalid argument";
-    case ErrorCode::kNotFound: return "not found";
-    case ErrorCode::kBufferTooSmall: return "buffer too small";
-    case ErrorCode::kTimeout: return "timeout";
-    case ErrorCode::kDevice: return "device error";
-    case ErrorCode::kState: return "wrong state";
-    case ErrorCode::kIo: return "I/O error";
-    case ErrorCode::kInternal: return "internal error";
-    case ErrorCode::kDegenerate: return "degenerate data";
-    case ErrorCode::kUnsupported: return "unsupported";
+    case ErrorCode::kInvalidArgument:
+      return "invalid argument";
+    case ErrorCode::kNotFound:
+      return "not found";
+    case ErrorCode::kBufferTooSmall:
+      return "buffer too small";
+    case ErrorCode::kTimeout:
+      return "timeout";
+    case ErrorCode::kDevice:
+      return "device error";
+    case ErrorCode::kState:
+      return "wrong state";
+    case ErrorCode::kIo:
+      return "I/O error";
+    case ErrorCode::kInternal:
+      return "internal error";
+    case ErrorCode::kDegenerate:
+      return "degenerate data";
+    case ErrorCode::kUnsupported:
+      return "unsupported";
   }
   return "unknown error";
 }
@@ -34,9 +45,11 @@ struct LensModelInfo {
 };
 
 const LensModelInfo& info(LensModel model) {
-  static const LensModelInfo opencv5{"opencv5", {"fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"}};
+  static const LensModelInfo opencv5{"opencv5",
+                                     {"fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"}};
   switch (model) {
-    case LensModel::kOpenCV5: return opencv5;
+    case LensModel::kOpenCV5:
+      return opencv5;
   }
   throw Error(ErrorCode::kInternal, "unknown lens model");
 }
@@ -93,9 +106,7 @@ CameraModel CameraModel::opencv5(int width, int height, double fx, double fy, do
                      {fx, fy, cx, cy, d[0], d[1], d[2], d[3], d[4]});
 }
 
-cv::Matx33d CameraModel::camera_matrix() const {
-  return {fx(), 0, cx(), 0, fy(), cy(), 0, 0, 1};
-}
+cv::Matx33d CameraModel::camera_matrix() const { return {fx(), 0, cx(), 0, fy(), cy(), 0, 0, 1}; }
 
 std::vector<double> CameraModel::distortion_coefficients() const {
   return {params_.begin() + kNumPinholeParams, params_.end()};
@@ -131,7 +142,8 @@ bool CameraModel::is_valid(std::string* why) const {
     return false;
   };
   if (width_ <= 0 || height_ <= 0) return fail("image size must be positive");
-  if (static_cast<int>(params_.size()) != num_intrinsics(model_)) return fail("wrong parameter count");
+  if (static_cast<int>(params_.size()) != num_intrinsics(model_))
+    return fail("wrong parameter count");
   for (size_t i = 0; i < params_.size(); ++i) {
     if (!std::isfinite(params_[i])) return fail("parameter " + param_names()[i] + " is not finite");
   }
@@ -374,8 +386,8 @@ void write_camera_model(const std::string& path, const CameraModel& model,
   fs << "lens_model" << std::string(lens_model_name(model.lens_model()));
   fs << "camera_matrix" << cv::Mat(model.camera_matrix());
   const std::vector<double> d = model.distortion_coefficients();
-  fs << "distortion_coefficients" << cv::Mat(1, static_cast<int>(d.size()), CV_64F,
-                                               const_cast<double*>(d.data()));
+  fs << "distortion_coefficients"
+     << cv::Mat(1, static_cast<int>(d.size()), CV_64F, const_cast<double*>(d.data()));
   if (extras.avg_reprojection_error >= 0) {
     fs << "avg_reprojection_error" << extras.avg_reprojection_error;
   }

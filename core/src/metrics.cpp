@@ -21,11 +21,13 @@ TestError test_error(const CameraModel& estimate, const std::vector<Observation>
     out.points += static_cast<int>(frame.size());
     ss += rms * rms * static_cast<double>(frame.size());
   }
-  out.rms_px = out.points > 0 ? std::sqrt(ss / out.points) : std::numeric_limits<double>::quiet_NaN();
+  out.rms_px =
+      out.points > 0 ? std::sqrt(ss / out.points) : std::numeric_limits<double>::quiet_NaN();
   return out;
 }
 
-double ground_truth_error(const CameraModel& truth, const CameraModel& estimate, int cols, int rows) {
+double ground_truth_error(const CameraModel& truth, const CameraModel& estimate, int cols,
+                          int rows) {
   if (cols < 1 || rows < 1) throw Error(ErrorCode::kInvalidArgument, "eps_gt: grid must be >= 1x1");
   if (truth.size() != estimate.size()) {
     throw Error(ErrorCode::kInvalidArgument, "eps_gt: models have different image sizes");

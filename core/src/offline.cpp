@@ -12,8 +12,10 @@ namespace fs = std::filesystem;
 
 std::vector<std::string> list_files_sorted(const std::string& dir) {
   std::error_code ec;
-  if (!fs::exists(dir, ec)) throw Error(ErrorCode::kNotFound, "directory '" + dir + "' does not exist");
-  if (!fs::is_directory(dir, ec)) throw Error(ErrorCode::kInvalidArgument, "'" + dir + "' is not a directory");
+  if (!fs::exists(dir, ec))
+    throw Error(ErrorCode::kNotFound, "directory '" + dir + "' does not exist");
+  if (!fs::is_directory(dir, ec))
+    throw Error(ErrorCode::kInvalidArgument, "'" + dir + "' is not a directory");
   std::vector<std::string> files;
   for (fs::directory_iterator it(dir, ec), end; !ec && it != end; it.increment(ec)) {
     std::error_code ec2;
@@ -44,22 +46,25 @@ OfflineCalibration calibrate_images(const std::string& dir, const TargetSpec& sp
     if (size.empty()) {
       size = img.size();
     } else if (img.size() != size) {
-      out.rejected.push_back({name, "image size " + std::to_string(img.cols) + "x" +
-                                        std::to_string(img.rows) + " differs from the first image's " +
-                                        std::to_string(size.width) + "x" + std::to_string(size.height)});
+      out.rejected.push_back(
+          {name, "image size " + std::to_string(img.cols) + "x" + std::to_string(img.rows) +
+                     " differs from the first image's " + std::to_string(size.width) + "x" +
+                     std::to_string(size.height)});
       continue;
     }
     const Detection det = target.detect(img, options.detector);
     if (static_cast<int>(det.size()) < options.min_corners) {
-      out.rejected.push_back({name, det.empty() ? "target not found"
-                                                : "only " + std::to_string(det.size()) + " corners found"});
+      out.rejected.push_back({name, det.empty()
+                                        ? "target not found"
+                                        : "only " + std::to_string(det.size()) + " corners found"});
       continue;
     }
     out.used.push_back(name);
     out.observations.push_back(Observation::from(det));
   }
   if (out.observations.empty()) {
-    throw Error(ErrorCode::kDegenerate, "no image in '" + dir + "' shows the target " + spec.to_string());
+    throw Error(ErrorCode::kDegenerate,
+                "no image in '" + dir + "' shows the target " + spec.to_string());
   }
   out.result = calibrate(out.observations, size, options.calibration);
   return out;

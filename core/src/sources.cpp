@@ -37,7 +37,8 @@ CameraConfig SimpleCamera::validate(const CameraConfig& requested) {
                                              pixel_format_name(*requested.pixel_format));
   }
   if (out.queue_depth < 1 || out.queue_depth > 64) {
-    throw Error(ErrorCode::kInvalidArgument, "camera '" + info_.uri + "': queue depth must be 1..64");
+    throw Error(ErrorCode::kInvalidArgument,
+                "camera '" + info_.uri + "': queue depth must be 1..64");
   }
   return out;
 }
@@ -124,9 +125,11 @@ class ImagesBackend final : public CameraBackend {
   std::string scheme() const override { return "images"; }
   std::vector<DeviceInfo> enumerate() override { return {}; }  // folders are not discoverable
   std::unique_ptr<Camera> open(const Uri& uri) override {
-    if (uri.path.empty()) throw Error(ErrorCode::kInvalidArgument, "camera URI '" + uri.text + "': no folder");
+    if (uri.path.empty())
+      throw Error(ErrorCode::kInvalidArgument, "camera URI '" + uri.text + "': no folder");
     if (!uri.query.empty()) {
-      throw Error(ErrorCode::kInvalidArgument, "camera URI '" + uri.text + "': images:// takes no options");
+      throw Error(ErrorCode::kInvalidArgument,
+                  "camera URI '" + uri.text + "': images:// takes no options");
     }
     std::vector<std::string> files;
     try {
@@ -170,7 +173,8 @@ class ExternalCameraImpl final : public ExternalCamera {
   }
   void configure(const CameraConfig& c) override {
     std::lock_guard<std::mutex> lock(mutex_);
-    if (state_ == CameraState::kStreaming) throw Error(ErrorCode::kState, "camera 'external': configure() while streaming");
+    if (state_ == CameraState::kStreaming)
+      throw Error(ErrorCode::kState, "camera 'external': configure() while streaming");
     config_ = validate(c);
     state_ = CameraState::kConfigured;
   }
@@ -192,11 +196,14 @@ class ExternalCameraImpl final : public ExternalCamera {
     queue_.clear();
   }
   void push(const cv::Mat& image, int64_t timestamp_ns) override {
-    if (image.empty() || image.depth() != CV_8U || (image.channels() != 1 && image.channels() != 3)) {
-      throw Error(ErrorCode::kInvalidArgument, "camera 'external': frames must be 8-bit grey or BGR");
+    if (image.empty() || image.depth() != CV_8U ||
+        (image.channels() != 1 && image.channels() != 3)) {
+      throw Error(ErrorCode::kInvalidArgument,
+                  "camera 'external': frames must be 8-bit grey or BGR");
     }
     std::lock_guard<std::mutex> lock(mutex_);
-    if (state_ != CameraState::kStreaming) throw Error(ErrorCode::kState, "camera 'external': push() while not streaming");
+    if (state_ != CameraState::kStreaming)
+      throw Error(ErrorCode::kState, "camera 'external': push() while not streaming");
     Frame f;
     f.image = image.clone();
     f.frame_id = next_id_++;
@@ -211,8 +218,10 @@ class ExternalCameraImpl final : public ExternalCamera {
   }
   FrameStatus next_frame(int timeout_ms, Frame* frame) override {
     std::unique_lock<std::mutex> lock(mutex_);
-    if (state_ != CameraState::kStreaming) throw Error(ErrorCode::kState, "camera 'external': next_frame() while not streaming");
-    if (!cv_.wait_for(lock, std::chrono::milliseconds(std::max(0, timeout_ms)), [&] { return !queue_.empty(); })) {
+    if (state_ != CameraState::kStreaming)
+      throw Error(ErrorCode::kState, "camera 'external': next_frame() while not streaming");
+    if (!cv_.wait_for(lock, std::chrono::milliseconds(std::max(0, timeout_ms)),
+                      [&] { return !queue_.empty(); })) {
       return FrameStatus::kTimeout;
     }
     *frame = std::move(queue_.front());
@@ -243,7 +252,8 @@ class ExternalBackend final : public CameraBackend {
   std::vector<DeviceInfo> enumerate() override { return {}; }
   std::unique_ptr<Camera> open(const Uri& uri) override {
     if (!uri.path.empty() || !uri.query.empty()) {
-      throw Error(ErrorCode::kInvalidArgument, "camera URI '" + uri.text + "': use plain 'external'");
+      throw Error(ErrorCode::kInvalidArgument,
+                  "camera URI '" + uri.text + "': use plain 'external'");
     }
     return std::make_unique<ExternalCameraImpl>();
   }
@@ -252,6 +262,8 @@ class ExternalBackend final : public CameraBackend {
 }  // namespace
 
 std::shared_ptr<CameraBackend> make_images_backend() { return std::make_shared<ImagesBackend>(); }
-std::shared_ptr<CameraBackend> make_external_backend() { return std::make_shared<ExternalBackend>(); }
+std::shared_ptr<CameraBackend> make_external_backend() {
+  return std::make_shared<ExternalBackend>();
+}
 
 }  // namespace posecal

@@ -15,19 +15,22 @@ void RenderOptions::validate() const {
   };
   if (supersample < 1 || supersample > 8) fail("supersample must be in [1, 8]");
   if (!(blur_sigma_px >= 0 && blur_sigma_px <= 20)) fail("blur sigma must be in [0, 20] px");
-  if (!(noise_sigma >= 0 && noise_sigma <= 100)) fail("noise sigma must be in [0, 100] grey levels");
+  if (!(noise_sigma >= 0 && noise_sigma <= 100))
+    fail("noise sigma must be in [0, 100] grey levels");
   if (!(paper_white >= 0 && paper_white <= 255)) fail("paper white must be in [0, 255]");
   if (!(ink_black >= 0 && ink_black <= 255)) fail("ink black must be in [0, 255]");
-  if (!(paper_white > ink_black + 10)) fail("paper white must exceed ink black by > 10 grey levels");
+  if (!(paper_white > ink_black + 10))
+    fail("paper white must exceed ink black by > 10 grey levels");
   if (!(exposure > 0 && exposure <= 10)) fail("exposure must be in (0, 10]");
   if (!(background >= 0 && background <= 255)) fail("background must be in [0, 255]");
-  if (!(background_texture >= 0 && background_texture <= 128)) fail("background texture in [0, 128]");
+  if (!(background_texture >= 0 && background_texture <= 128))
+    fail("background texture in [0, 128]");
 }
 
 namespace {
 
-constexpr int kTexelsPerSquare = 128;  // level 0; a multiple of 2^kMipLevels
-constexpr int kMipLevels = 5;          // 128 .. 8 texels per square
+constexpr int kTexelsPerSquare = 128;   // level 0; a multiple of 2^kMipLevels
+constexpr int kMipLevels = 5;           // 128 .. 8 texels per square
 constexpr double kMarginSquares = 1.0;  // white paper around the printed pattern
 
 uint64_t mix(uint64_t x) {
@@ -44,11 +47,11 @@ struct SyntheticCamera::Impl {
   CameraModel model;
   Target target;
   RenderOptions options;
-  cv::Mat rays;                      // CV_32FC2 normalised rays per sample
-  std::vector<cv::Mat> levels;       // CV_8UC2: (albedo, coverage) per mip level
+  cv::Mat rays;                 // CV_32FC2 normalised rays per sample
+  std::vector<cv::Mat> levels;  // CV_8UC2: (albedo, coverage) per mip level
   std::vector<double> metres_per_texel;
   double margin_m = 0;
-  cv::Mat background;                // CV_32F, output resolution
+  cv::Mat background;  // CV_32F, output resolution
   uint64_t frame = 0;
   // Scratch buffers reused between frames.
   cv::Mat map, sampled, pixels;
@@ -123,7 +126,8 @@ std::vector<cv::Point2d> SyntheticCamera::true_corners(const Pose& T_cam_board) 
 
 cv::Mat SyntheticCamera::render(const Pose& T_cam_board) {
   Impl& s = *impl_;
-  if (!T_cam_board.is_finite()) throw Error(ErrorCode::kInvalidArgument, "render: pose is not finite");
+  if (!T_cam_board.is_finite())
+    throw Error(ErrorCode::kInvalidArgument, "render: pose is not finite");
   const RenderOptions& o = s.options;
   const int n = o.supersample;
   const uint64_t frame_index = s.frame++;
@@ -145,8 +149,9 @@ cv::Mat SyntheticCamera::render(const Pose& T_cam_board) {
   const double sample_step = 1.0 / (n * 0.5 * (s.model.fx() + s.model.fy()));
   double min_footprint_m = std::numeric_limits<double>::infinity();
   const cv::Size2d bs = s.target.board_size_m();
-  for (const auto& B : {cv::Point2d(0, 0), cv::Point2d(bs.width, 0), cv::Point2d(0, bs.height),
-                        cv::Point2d(bs.width, bs.height), cv::Point2d(bs.width / 2, bs.height / 2)}) {
+  for (const auto& B :
+       {cv::Point2d(0, 0), cv::Point2d(bs.width, 0), cv::Point2d(0, bs.height),
+        cv::Point2d(bs.width, bs.height), cv::Point2d(bs.width / 2, bs.height / 2)}) {
     const Eigen::Vector3d q = H * Eigen::Vector3d(B.x, B.y, 1.0);
     if (!(q.z() > 1e-9)) continue;
     // d(normalised)/d(board) at B, then its inverse gives board metres per normalised unit.
@@ -171,32 +176,76 @@ cv::Mat SyntheticCamera::render(const Pose& T_cam_board) {
   A << 1 / m, 0, s.margin_m / m - 0.5, 0, 1 / m, s.margin_m / m - 0.5, 0, 0, 1;
   const Eigen::Matrix3f M = (A * Hinv).cast<float>();
 
-  const int W = s.rays.cols, Hh = s.rays.rows;
-  s.map.create(Hh, W, CV_32FC2);
-  for (int i = 0; i < Hh; ++i) {
-    const float* ray = s.rays.ptr<float>(i);
-    float* out = s.map.ptr<float>(i);
-    for (int j = 0; j < W; ++j) {
-      const float x = ray[2 * j], y = ray[2 * j + 1];
-      const float w = M(2, 0) * x + M(2, 1) * y + M(2, 2);
-      // w > 0: the ray meets the board plane in front of the camera (NaN rays fail the test).
-      const bool front = w > 1e-9f;
-      const float inv = front ? 1.0f / w : 0.0f;
-      out[2 * j] = front ? (M(0, 0) * x + M(0, 1) * y + M(0, 2)) * inv : -1e6f;
-      out[2 * j + 1] = front ? (M(1, 0) * x + M(1, 1) * y + M(1, 2)) * inv : -1e6f;
+  // Only the pixels the printed sheet (board plus white margin) can cover need sampling: its
+  // outline, projected densely through the true model, bounds them. If any outline point
+  // cannot be projected (behind the camera), sample the whole frame.
+  cv::Rect roi(0, 0, s.model.width(), s.model.height());
+  {
+    const double m0 = s.margin_m;
+    const std::vector<cv::Point3d> sheet = {{-m0, -m0, 0},
+                                            {bs.width + m0, -m0, 0},
+                                            {bs.width + m0, bs.height + m0, 0},
+                                            {-m0, bs.height + m0, 0}};
+    std::vector<cv::Point3d> edge;
+    constexpr int kSteps = 32;
+    for (int e = 0; e < 4; ++e)
+      for (int k = 0; k < kSteps; ++k)
+        edge.push_back(sheet[e] +
+                       (sheet[(e + 1) % 4] - sheet[e]) * (static_cast<double>(k) / kSteps));
+    const auto proj = project_points(s.model, T_cam_board, edge);
+    double x0 = 1e18, y0 = 1e18, x1 = -1e18, y1 = -1e18;
+    bool ok = true;
+    for (const auto& p : proj) {
+      if (!std::isfinite(p.x) || !std::isfinite(p.y) || std::abs(p.x) > 1e6 ||
+          std::abs(p.y) > 1e6) {
+        ok = false;
+        break;
+      }
+      x0 = std::min(x0, p.x), y0 = std::min(y0, p.y), x1 = std::max(x1, p.x),
+      y1 = std::max(y1, p.y);
+    }
+    if (ok) {
+      const int ix0 = std::max(0, static_cast<int>(std::floor(x0)) - 2);
+      const int iy0 = std::max(0, static_cast<int>(std::floor(y0)) - 2);
+      const int ix1 = std::min(s.model.width(), static_cast<int>(std::ceil(x1)) + 3);
+      const int iy1 = std::min(s.model.height(), static_cast<int>(std::ceil(y1)) + 3);
+      roi = ix1 > ix0 && iy1 > iy0 ? cv::Rect(ix0, iy0, ix1 - ix0, iy1 - iy0) : cv::Rect();
     }
   }
-  cv::remap(s.levels[level], s.sampled, s.map, cv::noArray(), cv::INTER_LINEAR,
-            cv::BORDER_CONSTANT, cv::Scalar(0, 0));
-  if (n > 1) {
-    cv::resize(s.sampled, s.pixels, s.model.size(), 0, 0, cv::INTER_AREA);
-  } else {
-    s.pixels = s.sampled;
+
+  s.pixels.create(s.model.size(), CV_8UC2);
+  s.pixels.setTo(cv::Scalar(0, 0));
+  if (!roi.empty()) {
+    const cv::Rect sroi(roi.x * n, roi.y * n, roi.width * n, roi.height * n);
+    const int W = sroi.width, Hh = sroi.height;
+    s.map.create(Hh, W, CV_32FC2);
+    for (int i = 0; i < Hh; ++i) {
+      const float* ray = s.rays.ptr<float>(sroi.y + i) + 2 * sroi.x;
+      float* out = s.map.ptr<float>(i);
+      for (int j = 0; j < W; ++j) {
+        const float x = ray[2 * j], y = ray[2 * j + 1];
+        const float w = M(2, 0) * x + M(2, 1) * y + M(2, 2);
+        // w > 0: the ray meets the board plane in front of the camera (NaN rays fail the test).
+        const bool front = w > 1e-9f;
+        const float inv = front ? 1.0f / w : 0.0f;
+        out[2 * j] = front ? (M(0, 0) * x + M(0, 1) * y + M(0, 2)) * inv : -1e6f;
+        out[2 * j + 1] = front ? (M(1, 0) * x + M(1, 1) * y + M(1, 2)) * inv : -1e6f;
+      }
+    }
+    cv::remap(s.levels[level], s.sampled, s.map, cv::noArray(), cv::INTER_LINEAR,
+              cv::BORDER_CONSTANT, cv::Scalar(0, 0));
+    cv::Mat dst = s.pixels(roi);
+    if (n > 1) {
+      cv::resize(s.sampled, dst, roi.size(), 0, 0, cv::INTER_AREA);
+    } else {
+      s.sampled.copyTo(dst);
+    }
   }
 
   // Composite: premultiplied albedo a_p and coverage c (both 0..255) over the background.
   cv::Mat img(s.model.size(), CV_32F);
-  const float ink = static_cast<float>(o.ink_black), span = static_cast<float>(o.paper_white - o.ink_black);
+  const float ink = static_cast<float>(o.ink_black),
+              span = static_cast<float>(o.paper_white - o.ink_black);
   const float expo = static_cast<float>(o.exposure);
   for (int i = 0; i < img.rows; ++i) {
     const uchar* px = s.pixels.ptr<uchar>(i);

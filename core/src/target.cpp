@@ -108,7 +108,8 @@ TargetSpec TargetSpec::parse(const std::string& spec) {
 
 void TargetSpec::validate() const {
   auto fail = [](const std::string& why) { throw Error(ErrorCode::kInvalidArgument, why); };
-  if (cols < 2 || rows < 2 || cols > 100 || rows > 100) fail("grid must be between 2x2 and 100x100");
+  if (cols < 2 || rows < 2 || cols > 100 || rows > 100)
+    fail("grid must be between 2x2 and 100x100");
   if (!(square_length_m > 0) || !std::isfinite(square_length_m)) fail("square length must be > 0");
   if (type == TargetType::kCharuco) {
     if (cols < 3 && rows < 3) fail("a ChArUco board needs at least 3 squares along one side");
@@ -150,10 +151,9 @@ Target::Target(const TargetSpec& spec) : spec_(spec) {
   const double s = spec_.square_length_m;
   if (spec_.type == TargetType::kCharuco) {
     impl->dictionary = cv::aruco::getPredefinedDictionary(dictionary_table().at(spec_.dictionary));
-    impl->board = cv::aruco::CharucoBoard::create(spec_.cols, spec_.rows,
-                                                  static_cast<float>(spec_.square_length_m),
-                                                  static_cast<float>(spec_.marker_length_m),
-                                                  impl->dictionary);
+    impl->board = cv::aruco::CharucoBoard::create(
+        spec_.cols, spec_.rows, static_cast<float>(spec_.square_length_m),
+        static_cast<float>(spec_.marker_length_m), impl->dictionary);
     impl->params = cv::aruco::DetectorParameters::create();
     // Corner ids as OpenCV numbers them: row-major over the inner corners. Recomputed in double
     // precision rather than taken from the board's float copy.
@@ -185,7 +185,8 @@ namespace {
 
 cv::Mat to_gray(const cv::Mat& image) {
   if (image.empty()) throw Error(ErrorCode::kInvalidArgument, "detect: empty image");
-  if (image.depth() != CV_8U) throw Error(ErrorCode::kInvalidArgument, "detect: image is not 8-bit");
+  if (image.depth() != CV_8U)
+    throw Error(ErrorCode::kInvalidArgument, "detect: image is not 8-bit");
   if (image.channels() == 1) return image;
   cv::Mat gray;
   if (image.channels() == 3) {
@@ -229,7 +230,8 @@ void refine_charuco_corners(const cv::Mat& gray, int corners_per_row, const std:
       auto it = index.find(nb);
       if (it != index.end()) d = std::min(d, cv::norm((*corners)[it->second] - (*corners)[i]));
     }
-    if (col > 0 && index.count(id - 1)) d = std::min(d, cv::norm((*corners)[index[id - 1]] - (*corners)[i]));
+    if (col > 0 && index.count(id - 1))
+      d = std::min(d, cv::norm((*corners)[index[id - 1]] - (*corners)[i]));
     if (col + 1 < corners_per_row && index.count(id + 1)) {
       d = std::min(d, cv::norm((*corners)[index[id + 1]] - (*corners)[i]));
     }
@@ -254,11 +256,12 @@ Detection Target::detect(const cv::Mat& image, const DetectorOptions& options) c
     if (spec_.type == TargetType::kChessboard) {
       std::vector<cv::Point2f> pts;
       const cv::Size pattern(spec_.cols, spec_.rows);
-      const int flags = cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE |
-                        cv::CALIB_CB_FAST_CHECK;
+      const int flags =
+          cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE | cv::CALIB_CB_FAST_CHECK;
       if (!cv::findChessboardCorners(gray, pattern, pts, flags)) return det;
-      const int hw = options.subpix_half_window > 0 ? options.subpix_half_window
-                                                    : subpix_half_window(pts, spec_.cols, spec_.rows);
+      const int hw = options.subpix_half_window > 0
+                         ? options.subpix_half_window
+                         : subpix_half_window(pts, spec_.cols, spec_.rows);
       cv::cornerSubPix(gray, pts, cv::Size(hw, hw), cv::Size(-1, -1),
                        cv::TermCriteria(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 50, 1e-3));
       for (size_t i = 0; i < pts.size(); ++i) {
@@ -300,7 +303,8 @@ Detection Target::detect(const cv::Mat& image, const DetectorOptions& options) c
     refine_charuco_corners(gray, spec_.cols - 1, ch_ids, &ch_corners);
     std::vector<size_t> order(ch_ids.size());
     for (size_t i = 0; i < order.size(); ++i) order[i] = i;
-    std::sort(order.begin(), order.end(), [&](size_t a, size_t b) { return ch_ids[a] < ch_ids[b]; });
+    std::sort(order.begin(), order.end(),
+              [&](size_t a, size_t b) { return ch_ids[a] < ch_ids[b]; });
     for (size_t k : order) {
       const int id = ch_ids[k];
       if (id < 0 || id >= num_corners()) continue;

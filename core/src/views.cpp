@@ -9,8 +9,9 @@ namespace posecal {
 Pose board_pose_at(const Target& target, const Eigen::Vector3d& centre_cam, double tilt_axis_rad,
                    double tilt_rad, double roll_rad) {
   const Eigen::Vector3d axis(std::cos(tilt_axis_rad), std::sin(tilt_axis_rad), 0.0);
-  const Eigen::Matrix3d R = Eigen::AngleAxisd(roll_rad, Eigen::Vector3d::UnitZ()).toRotationMatrix() *
-                            Eigen::AngleAxisd(tilt_rad, axis).toRotationMatrix();
+  const Eigen::Matrix3d R =
+      Eigen::AngleAxisd(roll_rad, Eigen::Vector3d::UnitZ()).toRotationMatrix() *
+      Eigen::AngleAxisd(tilt_rad, axis).toRotationMatrix();
   const cv::Size2d bs = target.board_size_m();
   const Eigen::Vector3d centre_board(bs.width / 2, bs.height / 2, 0.0);
   return Pose::from_rotation(R, centre_cam - R * centre_board);
@@ -53,7 +54,8 @@ std::optional<Pose> random_board_view(std::mt19937_64& rng, const CameraModel& m
   const cv::Size2d bs = target.board_size_m();
   const double pi = 3.14159265358979323846;
   for (int attempt = 0; attempt < s.max_tries; ++attempt) {
-    const double frac = s.min_width_fraction + (s.max_width_fraction - s.min_width_fraction) * U(rng);
+    const double frac =
+        s.min_width_fraction + (s.max_width_fraction - s.min_width_fraction) * U(rng);
     const double depth = model.fx() * bs.width / (frac * model.width());
     const Eigen::Vector2d px(U(rng) * (model.width() - 1), U(rng) * (model.height() - 1));
     Eigen::Vector2d xn;

@@ -1,7 +1,7 @@
 // posecal command line. Built on the C ABI only (posecal.h), so every command also exercises
 // the interface that factory software uses.
-#include <cstdio>
 #include <algorithm>
+#include <cstdio>
 #include <cstring>
 #include <functional>
 #include <map>
@@ -106,7 +106,8 @@ void print_usage() {
       "      list the cameras of every backend\n"
       "  version\n"
       "\n"
-      "SPEC: charuco:COLSxROWS:SQUARE_M:MARKER_M:DICT (default charuco:9x6:0.028:0.0182:DICT_4X4_50)\n"
+      "SPEC: charuco:COLSxROWS:SQUARE_M:MARKER_M:DICT (default "
+      "charuco:9x6:0.028:0.0182:DICT_4X4_50)\n"
       "      chessboard:COLSxROWS:SQUARE_M (inner corners), e.g. chessboard:9x6:0.025\n",
       stderr);
 }
@@ -121,19 +122,21 @@ int cmd_calibrate(const Args& args) {
   const std::string target = args.get("target");
   posecal_calibration* cal = nullptr;
   check(posecal_calibrate_images(c.ctx, args.get("images").c_str(),
-                                 target.empty() ? nullptr : target.c_str(), opts.dump().c_str(), &cal));
+                                 target.empty() ? nullptr : target.c_str(), opts.dump().c_str(),
+                                 &cal));
   struct Guard {
     posecal_calibration* p;
     ~Guard() { posecal_calibration_destroy(p); }
   } guard{cal};
   if (args.has("out")) check(posecal_calibration_save(cal, args.get("out").c_str()));
-  const Json j = Json::parse(fetch_json([&](char* b, size_t* s) { return posecal_calibration_json(cal, b, s); }));
+  const Json j = Json::parse(
+      fetch_json([&](char* b, size_t* s) { return posecal_calibration_json(cal, b, s); }));
   if (args.flag("json")) {
     std::printf("%s\n", j.dump().c_str());
     return 0;
   }
-  std::printf("calibrated from %zu image(s), %zu rejected; RMS %.4f px\n",
-              j["used"].size(), j["rejected"].size(), j["rms"].is_number() ? j["rms"].get<double>() : -1.0);
+  std::printf("calibrated from %zu image(s), %zu rejected; RMS %.4f px\n", j["used"].size(),
+              j["rejected"].size(), j["rms"].is_number() ? j["rms"].get<double>() : -1.0);
   for (const auto& name : j["covariance_order"]) {
     const std::string n = name.get<std::string>();
     std::printf("  %-3s = %14.6f  +- %.6f\n", n.c_str(), j[n].get<double>(),
@@ -157,7 +160,8 @@ int cmd_board(const Args& args) {
 
 int cmd_list(const Args& args) {
   Context c;
-  const Json cams = Json::parse(fetch_json([&](char* b, size_t* s) { return posecal_list_cameras(c.ctx, b, s); }));
+  const Json cams = Json::parse(
+      fetch_json([&](char* b, size_t* s) { return posecal_list_cameras(c.ctx, b, s); }));
   if (args.flag("json")) {
     std::printf("%s\n", cams.dump().c_str());
     return 0;
@@ -187,10 +191,12 @@ int main(int argc, char** argv) {
   const std::string cmd = argv[1];
   try {
     if (cmd == "calibrate") {
-      return cmd_calibrate(Args(argc, argv, 2, {"json", "fix-principal-point", "fix-aspect-ratio", "zero-tangential"},
-                                {"images", "target", "out", "camera"}));
+      return cmd_calibrate(Args(
+          argc, argv, 2, {"json", "fix-principal-point", "fix-aspect-ratio", "zero-tangential"},
+          {"images", "target", "out", "camera"}));
     }
-    if (cmd == "board") return cmd_board(Args(argc, argv, 2, {}, {"out", "target", "dpi", "margin"}));
+    if (cmd == "board")
+      return cmd_board(Args(argc, argv, 2, {}, {"out", "target", "dpi", "margin"}));
     if (cmd == "list") return cmd_list(Args(argc, argv, 2, {"json"}, {}));
     if (cmd == "version") {
       std::printf("posecal %s (ABI %u)\n", posecal_version(), posecal_abi_version());
@@ -201,7 +207,8 @@ int main(int argc, char** argv) {
     std::fprintf(stderr, "posecal %s: %s (see posecal --help)\n", cmd.c_str(), e.message.c_str());
     return 1;
   } catch (const Failure& f) {
-    std::fprintf(stderr, "posecal %s: %s [%s]\n", cmd.c_str(), f.message.c_str(), posecal_status_name(f.status));
+    std::fprintf(stderr, "posecal %s: %s [%s]\n", cmd.c_str(), f.message.c_str(),
+                 posecal_status_name(f.status));
     return 2;
   } catch (const std::exception& e) {
     std::fprintf(stderr, "posecal %s: %s\n", cmd.c_str(), e.what());

@@ -33,17 +33,28 @@ POSECAL_API const char* posecal_last_error(void) noexcept { return abi::last_err
 
 POSECAL_API const char* posecal_status_name(posecal_status status) noexcept {
   switch (status) {
-    case POSECAL_OK: return "POSECAL_OK";
-    case POSECAL_E_INVALID_ARGUMENT: return "POSECAL_E_INVALID_ARGUMENT";
-    case POSECAL_E_NOT_FOUND: return "POSECAL_E_NOT_FOUND";
-    case POSECAL_E_BUFFER_TOO_SMALL: return "POSECAL_E_BUFFER_TOO_SMALL";
-    case POSECAL_E_TIMEOUT: return "POSECAL_E_TIMEOUT";
-    case POSECAL_E_DEVICE: return "POSECAL_E_DEVICE";
-    case POSECAL_E_STATE: return "POSECAL_E_STATE";
-    case POSECAL_E_IO: return "POSECAL_E_IO";
-    case POSECAL_E_INTERNAL: return "POSECAL_E_INTERNAL";
-    case POSECAL_E_DEGENERATE: return "POSECAL_E_DEGENERATE";
-    case POSECAL_E_UNSUPPORTED: return "POSECAL_E_UNSUPPORTED";
+    case POSECAL_OK:
+      return "POSECAL_OK";
+    case POSECAL_E_INVALID_ARGUMENT:
+      return "POSECAL_E_INVALID_ARGUMENT";
+    case POSECAL_E_NOT_FOUND:
+      return "POSECAL_E_NOT_FOUND";
+    case POSECAL_E_BUFFER_TOO_SMALL:
+      return "POSECAL_E_BUFFER_TOO_SMALL";
+    case POSECAL_E_TIMEOUT:
+      return "POSECAL_E_TIMEOUT";
+    case POSECAL_E_DEVICE:
+      return "POSECAL_E_DEVICE";
+    case POSECAL_E_STATE:
+      return "POSECAL_E_STATE";
+    case POSECAL_E_IO:
+      return "POSECAL_E_IO";
+    case POSECAL_E_INTERNAL:
+      return "POSECAL_E_INTERNAL";
+    case POSECAL_E_DEGENERATE:
+      return "POSECAL_E_DEGENERATE";
+    case POSECAL_E_UNSUPPORTED:
+      return "POSECAL_E_UNSUPPORTED";
   }
   return "POSECAL_E_UNKNOWN";
 }
@@ -128,7 +139,8 @@ POSECAL_API posecal_status posecal_calibration_json(const posecal_calibration* c
     j["frames_rejected"] = cal->offline.rejected.size();
     j["used"] = cal->offline.used;
     nlohmann::json rej = nlohmann::json::array();
-    for (const auto& r : cal->offline.rejected) rej.push_back({{"file", r.file}, {"reason", r.reason}});
+    for (const auto& r : cal->offline.rejected)
+      rej.push_back({{"file", r.file}, {"reason", r.reason}});
     j["rejected"] = rej;
     return abi::copy_out(j.dump(), buf, size);
   });

@@ -15,16 +15,26 @@ const char* last_error() { return t_last_error.c_str(); }
 
 posecal_status status_of(ErrorCode code) {
   switch (code) {
-    case ErrorCode::kInvalidArgument: return POSECAL_E_INVALID_ARGUMENT;
-    case ErrorCode::kNotFound: return POSECAL_E_NOT_FOUND;
-    case ErrorCode::kBufferTooSmall: return POSECAL_E_BUFFER_TOO_SMALL;
-    case ErrorCode::kTimeout: return POSECAL_E_TIMEOUT;
-    case ErrorCode::kDevice: return POSECAL_E_DEVICE;
-    case ErrorCode::kState: return POSECAL_E_STATE;
-    case ErrorCode::kIo: return POSECAL_E_IO;
-    case ErrorCode::kInternal: return POSECAL_E_INTERNAL;
-    case ErrorCode::kDegenerate: return POSECAL_E_DEGENERATE;
-    case ErrorCode::kUnsupported: return POSECAL_E_UNSUPPORTED;
+    case ErrorCode::kInvalidArgument:
+      return POSECAL_E_INVALID_ARGUMENT;
+    case ErrorCode::kNotFound:
+      return POSECAL_E_NOT_FOUND;
+    case ErrorCode::kBufferTooSmall:
+      return POSECAL_E_BUFFER_TOO_SMALL;
+    case ErrorCode::kTimeout:
+      return POSECAL_E_TIMEOUT;
+    case ErrorCode::kDevice:
+      return POSECAL_E_DEVICE;
+    case ErrorCode::kState:
+      return POSECAL_E_STATE;
+    case ErrorCode::kIo:
+      return POSECAL_E_IO;
+    case ErrorCode::kInternal:
+      return POSECAL_E_INTERNAL;
+    case ErrorCode::kDegenerate:
+      return POSECAL_E_DEGENERATE;
+    case ErrorCode::kUnsupported:
+      return POSECAL_E_UNSUPPORTED;
   }
   return POSECAL_E_INTERNAL;
 }
@@ -55,7 +65,8 @@ nlohmann::json parse_options(const char* json_text, const std::vector<std::strin
   } catch (const nlohmann::json::parse_error& e) {
     throw Error(ErrorCode::kInvalidArgument, std::string(what) + " is not valid JSON: " + e.what());
   }
-  if (!j.is_object()) throw Error(ErrorCode::kInvalidArgument, std::string(what) + " must be a JSON object");
+  if (!j.is_object())
+    throw Error(ErrorCode::kInvalidArgument, std::string(what) + " must be a JSON object");
   for (const auto& item : j.items()) {
     if (std::find(allowed.begin(), allowed.end(), item.key()) == allowed.end()) {
       std::string list;

@@ -28,10 +28,12 @@ posecal_context::posecal_context(const nlohmann::json& options) {
   std::vector<std::string> enabled = known_backends();
   if (options.contains("backends")) {
     const auto& b = options["backends"];
-    if (!b.is_array()) throw Error(ErrorCode::kInvalidArgument, "context options: 'backends' must be an array");
+    if (!b.is_array())
+      throw Error(ErrorCode::kInvalidArgument, "context options: 'backends' must be an array");
     enabled.clear();
     for (const auto& item : b) {
-      if (!item.is_string()) throw Error(ErrorCode::kInvalidArgument, "context options: backend names are strings");
+      if (!item.is_string())
+        throw Error(ErrorCode::kInvalidArgument, "context options: backend names are strings");
       const std::string name = item.get<std::string>();
       const auto& known = known_backends();
       if (std::find(known.begin(), known.end(), name) == known.end()) {

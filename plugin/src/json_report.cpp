@@ -9,17 +9,24 @@ namespace posecal::abi {
 namespace {
 
 // JSON has no NaN/Inf: a non-finite number is written as null, never as a valid-looking value.
-nlohmann::json number(double v) { return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr); }
+nlohmann::json number(double v) {
+  return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr);
+}
 
 bool ends_with(const std::string& s, const std::string& suffix) {
-  return s.size() >= suffix.size() && s.compare(s.size() - suffix.size(), suffix.size(), suffix) == 0;
+  return s.size() >= suffix.size() &&
+         s.compare(s.size() - suffix.size(), suffix.size(), suffix) == 0;
 }
 
 }  // namespace
 
 nlohmann::json device_json(const DeviceInfo& d) {
-  return {{"uri", d.uri},       {"backend", d.backend}, {"id", d.id},
-          {"vendor", d.vendor}, {"model", d.model},     {"serial", d.serial},
+  return {{"uri", d.uri},
+          {"backend", d.backend},
+          {"id", d.id},
+          {"vendor", d.vendor},
+          {"model", d.model},
+          {"serial", d.serial},
           {"transport", d.transport}};
 }
 
@@ -66,7 +73,8 @@ nlohmann::json calibration_json(const CalibrationResult& r) {
 void save_calibration(const std::string& path, const CalibrationResult& r,
                       const std::vector<std::pair<std::string, std::string>>& extra_strings) {
   if (!(ends_with(path, ".yml") || ends_with(path, ".yaml") || ends_with(path, ".json"))) {
-    throw Error(ErrorCode::kInvalidArgument, "output file '" + path + "': use .yml, .yaml or .json");
+    throw Error(ErrorCode::kInvalidArgument,
+                "output file '" + path + "': use .yml, .yaml or .json");
   }
   CalibrationFileExtras extras;
   extras.nr_of_frames = static_cast<int>(r.poses.size());

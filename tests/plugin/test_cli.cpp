@@ -51,16 +51,23 @@ TEST(Cli, CalibratesOpenCVSampleImagesLikeOpenCV) {
       fs::copy_file(e.path(), dir / name);
     }
   }
-  { std::FILE* f = std::fopen((dir / "readme.txt").c_str(), "w"); std::fputs("not an image", f); std::fclose(f); }
+  {
+    std::FILE* f = std::fopen((dir / "readme.txt").c_str(), "w");
+    std::fputs("not an image", f);
+    std::fclose(f);
+  }
   const std::string out = (dir / "calib.yml").string();
-  const CliRun r = run("calibrate --images " + dir.string() + " --target chessboard:9x6:0.025 --out " + out + " --json");
+  const CliRun r = run("calibrate --images " + dir.string() +
+                       " --target chessboard:9x6:0.025 --out " + out + " --json");
   ASSERT_EQ(r.status, 0) << r.out;
   const auto j = nlohmann::json::parse(r.out);
   EXPECT_GE(j["frames_used"].get<int>(), 10);
   EXPECT_EQ(j["frames_rejected"].get<int>(), 1);  // readme.txt
   EXPECT_EQ(j["rejected"][0]["file"], "readme.txt");
-  for (const char* k : {"fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "rms"}) ASSERT_TRUE(j[k].is_number()) << k;
-  for (const char* k : {"fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"}) ASSERT_TRUE(j["std"][k].is_number()) << k;
+  for (const char* k : {"fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "rms"})
+    ASSERT_TRUE(j[k].is_number()) << k;
+  for (const char* k : {"fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"})
+    ASSERT_TRUE(j["std"][k].is_number()) << k;
 
   // The same detections through cv::calibrateCamera.
   const posecal::Target target(posecal::TargetSpec::parse("chessboard:9x6:0.025"));
@@ -77,10 +84,12 @@ TEST(Cli, CalibratesOpenCVSampleImagesLikeOpenCV) {
   cv::Mat K, D;
   std::vector<cv::Mat> rv, tv;
   const double cv_rms = cv::calibrateCamera(obj, img, size, K, D, rv, tv);
-  std::printf("posecal fx %.3f fy %.3f cx %.3f cy %.3f k1 %.4f rms %.4f | OpenCV fx %.3f fy %.3f cx %.3f cy %.3f k1 %.4f rms %.4f\n",
-              j["fx"].get<double>(), j["fy"].get<double>(), j["cx"].get<double>(), j["cy"].get<double>(),
-              j["k1"].get<double>(), j["rms"].get<double>(), K.at<double>(0, 0), K.at<double>(1, 1),
-              K.at<double>(0, 2), K.at<double>(1, 2), D.at<double>(0), cv_rms);
+  std::printf(
+      "posecal fx %.3f fy %.3f cx %.3f cy %.3f k1 %.4f rms %.4f | OpenCV fx %.3f fy %.3f cx %.3f "
+      "cy %.3f k1 %.4f rms %.4f\n",
+      j["fx"].get<double>(), j["fy"].get<double>(), j["cx"].get<double>(), j["cy"].get<double>(),
+      j["k1"].get<double>(), j["rms"].get<double>(), K.at<double>(0, 0), K.at<double>(1, 1),
+      K.at<double>(0, 2), K.at<double>(1, 2), D.at<double>(0), cv_rms);
   EXPECT_NEAR(j["fx"].get<double>(), K.at<double>(0, 0), 0.05);
   EXPECT_NEAR(j["fy"].get<double>(), K.at<double>(1, 1), 0.05);
   EXPECT_NEAR(j["cx"].get<double>(), K.at<double>(0, 2), 0.05);
@@ -119,7 +128,9 @@ TEST(Cli, BadInputGivesMessageAndNonZeroExit) {
   EXPECT_EQ(r.status, 2);
   EXPECT_NE(r.out.find("no image"), std::string::npos) << r.out;
   // Images without enough views: a blank image set.
-  for (int i = 0; i < 3; ++i) cv::imwrite((dir / ("blank" + std::to_string(i) + ".png")).string(), cv::Mat(480, 640, CV_8U, cv::Scalar(128)));
+  for (int i = 0; i < 3; ++i)
+    cv::imwrite((dir / ("blank" + std::to_string(i) + ".png")).string(),
+                cv::Mat(480, 640, CV_8U, cv::Scalar(128)));
   r = run("calibrate --images " + dir.string() + " --json");
   EXPECT_EQ(r.status, 2) << r.out;
 }

@@ -65,8 +65,8 @@ TEST(Calibration, NoWorseThanOpenCVOnTheSameFrames) {
   }
   cv::Mat K, D, std_intr, std_extr, per_view;
   std::vector<cv::Mat> rv, tv;
-  const double cv_rms = cv::calibrateCamera(obj, img, truth.size(), K, D, rv, tv, std_intr,
-                                                    std_extr, per_view);
+  const double cv_rms =
+      cv::calibrateCamera(obj, img, truth.size(), K, D, rv, tv, std_intr, std_extr, per_view);
   const CameraModel cvm = CameraModel::opencv5(
       truth.width(), truth.height(), K.at<double>(0, 0), K.at<double>(1, 1), K.at<double>(0, 2),
       K.at<double>(1, 2),
@@ -98,7 +98,8 @@ TEST(Calibration, WarmStartMatchesColdStart) {
   const CalibrationResult warm = calibrate(frames, truth.size(), {}, &ws);
   const CalibrationResult cold = calibrate(frames, truth.size());
   for (int i = 0; i < 9; ++i) {
-    EXPECT_NEAR(warm.model.params()[i], cold.model.params()[i], 1e-6 * (1 + std::abs(cold.model.params()[i])));
+    EXPECT_NEAR(warm.model.params()[i], cold.model.params()[i],
+                1e-6 * (1 + std::abs(cold.model.params()[i])));
     EXPECT_NEAR(warm.std_unit[i], cold.std_unit[i], 1e-6 * (1 + cold.std_unit[i]));
   }
   EXPECT_EQ(warm.covariance.rows(), 9 + 6 * 11);
@@ -128,13 +129,15 @@ TEST(Calibration, FocalOnlySingleFrameBootstrap) {
 }
 
 TEST(Calibration, FrontoParallelViewsAreDegenerate) {
-  const CameraModel truth = CameraModel::opencv5(1280, 720, 1000, 1000, 639.5, 359.5, {0, 0, 0, 0, 0});
+  const CameraModel truth =
+      CameraModel::opencv5(1280, 720, 1000, 1000, 639.5, 359.5, {0, 0, 0, 0, 0});
   const Target target;
   SyntheticCamera sc(truth, target, noisy(11));
   std::vector<Pose> poses;
   for (int i = 0; i < 6; ++i) {
-    poses.push_back(board_pose_at(target, Eigen::Vector3d(-0.1 + 0.04 * i, 0.02 * (i % 3) - 0.02, 0.45 + 0.03 * i),
-                                  0.0, 0.0, 0.1 * i));
+    poses.push_back(board_pose_at(
+        target, Eigen::Vector3d(-0.1 + 0.04 * i, 0.02 * (i % 3) - 0.02, 0.45 + 0.03 * i), 0.0, 0.0,
+        0.1 * i));
   }
   const auto frames = observe(sc, poses);
   ASSERT_EQ(frames.size(), 6u);

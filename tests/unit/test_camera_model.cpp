@@ -77,9 +77,9 @@ TEST(CameraModel, UnprojectInvertsProjectAndAgreesWithOpenCV) {
   for (int v = 0; v < m.height(); v += 37)
     for (int u = 0; u < m.width(); u += 41) px.emplace_back(u, v);
   std::vector<cv::Point2d> cvn;
-  cv::undistortPoints(px, cvn, cv::Mat(m.camera_matrix()), m.distortion_coefficients(), cv::noArray(),
-                      cv::noArray(),
-                      cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 200, 1e-14));
+  cv::undistortPoints(
+      px, cvn, cv::Mat(m.camera_matrix()), m.distortion_coefficients(), cv::noArray(),
+      cv::noArray(), cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 200, 1e-14));
   for (size_t i = 0; i < px.size(); ++i) {
     Eigen::Vector2d xn, back;
     ASSERT_TRUE(m.unproject(Eigen::Vector2d(px[i].x, px[i].y), &xn)) << px[i];
@@ -94,7 +94,8 @@ TEST(CameraModel, UnprojectInvertsProjectAndAgreesWithOpenCV) {
 TEST(CameraModel, UnprojectRejectsPixelsWithoutPreimage) {
   // k1 = -0.6 alone folds over at r = 1/sqrt(1.8) = 0.745 (max distorted radius 0.497): pixels
   // beyond that radius have no preimage.
-  const CameraModel m = CameraModel::opencv5(1000, 1000, 500, 500, 499.5, 499.5, {-0.6, 0, 0, 0, 0});
+  const CameraModel m =
+      CameraModel::opencv5(1000, 1000, 500, 500, 499.5, 499.5, {-0.6, 0, 0, 0, 0});
   Eigen::Vector2d xn;
   EXPECT_TRUE(m.unproject(Eigen::Vector2d(499.5 + 0.4 * 500, 499.5), &xn));
   EXPECT_FALSE(m.unproject(Eigen::Vector2d(499.5 + 0.6 * 500, 499.5), &xn));
@@ -166,7 +167,8 @@ TEST(CameraModel, BadFilesGiveClearErrors) {
   {
     std::ofstream(dir + "/nan.yml")
         << "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\ncamera_matrix: !!opencv-matrix\n"
-           "   rows: 3\n   cols: 3\n   dt: d\n   data: [ .Nan, 0., 320., 0., 500., 240., 0., 0., 1. ]\n"
+           "   rows: 3\n   cols: 3\n   dt: d\n   data: [ .Nan, 0., 320., 0., 500., 240., 0., 0., "
+           "1. ]\n"
            "distortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: 5\n   dt: d\n"
            "   data: [ 0., 0., 0., 0., 0. ]\n";
     expect_error(dir + "/nan.yml", ErrorCode::kInvalidArgument, "not finite");

@@ -8,7 +8,8 @@ using namespace posecal;
 
 namespace {
 
-double rms_error(const Detection& d, const std::vector<cv::Point2d>& truth, double* max_err = nullptr) {
+double rms_error(const Detection& d, const std::vector<cv::Point2d>& truth,
+                 double* max_err = nullptr) {
   double ss = 0, mx = 0;
   for (size_t i = 0; i < d.size(); ++i) {
     const cv::Point2d e = d.image_points[i] - truth[d.ids[i]];

@@ -95,7 +95,8 @@ Offset compare(const std::vector<cv::Point2d>& found, const std::vector<int>& id
 // interpolation is offset by (+0.5, +0.5) px, the chessboard detector is not; ours corrects the
 // ChArUco path so both agree with the pixel-centre convention.
 TEST(Target, CharucoHalfPixelOffsetIsCorrected) {
-  const CameraModel cam = CameraModel::opencv5(1280, 720, 1000, 1000, 639.5, 359.5, {0, 0, 0, 0, 0});
+  const CameraModel cam =
+      CameraModel::opencv5(1280, 720, 1000, 1000, 639.5, 359.5, {0, 0, 0, 0, 0});
   const Target charuco(TargetSpec::parse("charuco:9x6:0.028:0.0182:DICT_4X4_50"));
   const Target chess(TargetSpec::parse("chessboard:8x5:0.028"));  // the same 9x6 squares
   const Pose pose = board_pose_at(charuco, Eigen::Vector3d(0.02, -0.01, 0.45), 0.7, 0.5, 0.3);
@@ -115,7 +116,8 @@ TEST(Target, CharucoHalfPixelOffsetIsCorrected) {
   cv::aruco::interpolateCornersCharuco(mc, mids, img_charuco, board, raw, raw_ids);
   ASSERT_EQ(raw.size(), 40u);
   const auto truth_charuco = sc_charuco.true_corners(pose);
-  const Offset raw_off = compare(std::vector<cv::Point2d>(raw.begin(), raw.end()), raw_ids, truth_charuco);
+  const Offset raw_off =
+      compare(std::vector<cv::Point2d>(raw.begin(), raw.end()), raw_ids, truth_charuco);
   EXPECT_NEAR(raw_off.mean_x, 0.5, 0.15);
   EXPECT_NEAR(raw_off.mean_y, 0.5, 0.15);
 
@@ -131,8 +133,10 @@ TEST(Target, CharucoHalfPixelOffsetIsCorrected) {
   EXPECT_LT(std::abs(o2.mean_y), 0.05);
   EXPECT_LT(o1.rms, 0.1);
   EXPECT_LT(o2.rms, 0.1);
-  std::printf("charuco raw offset (%.3f, %.3f); corrected (%.4f, %.4f) rms %.4f; chessboard (%.4f, %.4f) rms %.4f\n",
-              raw_off.mean_x, raw_off.mean_y, o1.mean_x, o1.mean_y, o1.rms, o2.mean_x, o2.mean_y, o2.rms);
+  std::printf(
+      "charuco raw offset (%.3f, %.3f); corrected (%.4f, %.4f) rms %.4f; chessboard (%.4f, %.4f) "
+      "rms %.4f\n",
+      raw_off.mean_x, raw_off.mean_y, o1.mean_x, o1.mean_y, o1.rms, o2.mean_x, o2.mean_y, o2.rms);
 }
 
 TEST(Target, DetectRejectsBadImagesWithoutCrashing) {

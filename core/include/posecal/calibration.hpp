@@ -46,10 +46,10 @@ struct CalibrationResult {
   std::vector<Pose> poses;  // T_cam_board per frame
   std::vector<bool> fixed;  // per intrinsic
   int num_points = 0;
-  int num_unknowns = 0;     // free intrinsics + 6 per frame
+  int num_unknowns = 0;  // free intrinsics + 6 per frame
   int iterations = 0;
-  bool converged = false;   // solver reached a tolerance (not the iteration cap)
-  double rms_px = 0;        // eps_res: sqrt(sum |p - pi(P)|^2 / N)
+  bool converged = false;  // solver reached a tolerance (not the iteration cap)
+  double rms_px = 0;       // eps_res: sqrt(sum |p - pi(P)|^2 / N)
   std::vector<double> frame_rms_px;
   // Backward transport of covariance, Sigma_v = (J^T Sigma_p^-1 J)^+ with Sigma_p = I (paper
   // eq. 5). Order: intrinsics, then (r, t) per frame. Rows/columns of fixed parameters are 0.
@@ -59,7 +59,7 @@ struct CalibrationResult {
   std::vector<double> std_unit;    // sqrt(diag(covariance)) of the intrinsics (Sigma_p = I)
   std::vector<double> std_scaled;  // the same scaled by the residual variance: honest sigma
   std::vector<double> index_of_dispersion;  // sigma_unit^2 / |C| (sigma^2 where C = 0)
-  int rank_deficiency = 0;         // eigenvalues of J^T J treated as zero by the pseudo-inverse
+  int rank_deficiency = 0;  // eigenvalues of J^T J treated as zero by the pseudo-inverse
   double solve_ms = 0;
 
   Eigen::MatrixXd covariance_scaled() const { return covariance * residual_variance; }

@@ -38,10 +38,10 @@
 namespace posecal {
 
 struct Uri {
-  std::string scheme;                          // "aravis", "v4l2", "sim", "images", "external"
-  std::string path;                            // everything between "scheme://" and "?"
-  std::map<std::string, std::string> query;    // decoded key=value pairs after "?"
-  std::string text;                            // the original URI
+  std::string scheme;                        // "aravis", "v4l2", "sim", "images", "external"
+  std::string path;                          // everything between "scheme://" and "?"
+  std::map<std::string, std::string> query;  // decoded key=value pairs after "?"
+  std::string text;                          // the original URI
   // Throws Error(kInvalidArgument) for a malformed URI.
   static Uri parse(const std::string& uri);
 };
@@ -63,9 +63,9 @@ const char* pixel_format_name(PixelFormat f);
 PixelFormat pixel_format_from_name(const std::string& name);  // kUnknown if not known
 
 struct DeviceInfo {
-  std::string uri;        // opens this camera again, e.g. "aravis://Aravis-Fake-GV01"
-  std::string backend;    // "aravis", "v4l2", "sim", "images", "external"
-  std::string id;         // backend-specific stable id
+  std::string uri;      // opens this camera again, e.g. "aravis://Aravis-Fake-GV01"
+  std::string backend;  // "aravis", "v4l2", "sim", "images", "external"
+  std::string id;       // backend-specific stable id
   std::string vendor;
   std::string model;
   std::string serial;
@@ -77,7 +77,7 @@ struct DeviceInfo {
 struct Frame {
   cv::Mat image;
   uint64_t frame_id = 0;
-  int64_t timestamp_ns = 0;   // device timestamp where the device has one, else host monotonic
+  int64_t timestamp_ns = 0;  // device timestamp where the device has one, else host monotonic
   PixelFormat source_format = PixelFormat::kUnknown;
   std::shared_ptr<void> hold;
 };
@@ -87,21 +87,21 @@ struct Frame {
 // naming the camera and the setting (libcamera's Invalid).
 struct CameraConfig {
   std::optional<PixelFormat> pixel_format;
-  std::optional<cv::Rect> roi;            // width/height (and offset where supported)
+  std::optional<cv::Rect> roi;  // width/height (and offset where supported)
   std::optional<double> exposure_us;
   std::optional<double> gain_db;
   std::optional<double> frame_rate_hz;
-  int queue_depth = 4;                    // frames buffered before the oldest is dropped
+  int queue_depth = 4;  // frames buffered before the oldest is dropped
 };
 
 struct FeatureInfo {
   std::string name;
-  std::string type;      // "integer", "float", "boolean", "enumeration", "string", "command"
-  std::string value;     // current value as text ("" if not readable)
+  std::string type;   // "integer", "float", "boolean", "enumeration", "string", "command"
+  std::string value;  // current value as text ("" if not readable)
   bool readable = true;
   bool writable = false;
   std::string unit;
-  std::string min, max;  // for numbers, "" if none
+  std::string min, max;              // for numbers, "" if none
   std::vector<std::string> options;  // for enumerations/menus
 };
 
@@ -127,12 +127,12 @@ using CameraEventCallback = std::function<void(const CameraEvent&)>;
 // What the engine wants next, for cameras that can act on it: the simulated operator moves the
 // synthetic board to the target. Real cameras ignore it.
 struct GuidanceInfo {
-  bool has_target = false;      // false while waiting for the board / after convergence
-  bool bootstrapping = false;   // no calibration yet: show the board roughly fronto-parallel
-  bool robot = false;           // target is to be reached literally (6-DoF), not by overlay
-  Pose T_cam_board_target;      // target board pose in the camera frame
-  CameraModel estimate;         // current intrinsics, used to draw the overlay
-  uint64_t target_serial = 0;   // increments with every new target
+  bool has_target = false;     // false while waiting for the board / after convergence
+  bool bootstrapping = false;  // no calibration yet: show the board roughly fronto-parallel
+  bool robot = false;          // target is to be reached literally (6-DoF), not by overlay
+  Pose T_cam_board_target;     // target board pose in the camera frame
+  CameraModel estimate;        // current intrinsics, used to draw the overlay
+  uint64_t target_serial = 0;  // increments with every new target
 };
 
 class Camera {

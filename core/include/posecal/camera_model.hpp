@@ -29,7 +29,9 @@ inline constexpr int kNumPinholeParams = 4;
 inline constexpr int kMaxIntrinsics = 18;
 
 int num_distortion_params(LensModel model);
-inline int num_intrinsics(LensModel model) { return kNumPinholeParams + num_distortion_params(model); }
+inline int num_intrinsics(LensModel model) {
+  return kNumPinholeParams + num_distortion_params(model);
+}
 const std::vector<std::string>& intrinsic_names(LensModel model);
 const char* lens_model_name(LensModel model);
 
@@ -46,7 +48,7 @@ inline void distort_generic(LensModel model, const T* dist, const T& x, const T&
       const T& k3 = dist[4];
       const T x2 = x * x, y2 = y * y, xy = x * y;
       const T r2 = x2 + y2;
-      const T radial = T(1) + r2 * (k1 + r2 * (k2 + r2 * k3));  // paper eq. 2a
+      const T radial = T(1) + r2 * (k1 + r2 * (k2 + r2 * k3));    // paper eq. 2a
       *xd = x * radial + T(2) * p1 * xy + p2 * (r2 + T(2) * x2);  // paper eq. 2b
       *yd = y * radial + p1 * (r2 + T(2) * y2) + T(2) * p2 * xy;
       return;
@@ -131,9 +133,9 @@ CameraModel read_camera_model(const std::string& path);
 
 // Extra fields written along with the model.
 struct CalibrationFileExtras {
-  int nr_of_frames = -1;                   // omitted if < 0
-  double avg_reprojection_error = -1;      // omitted if < 0
-  std::vector<double> param_std;           // per-parameter standard deviations (omitted if empty)
+  int nr_of_frames = -1;               // omitted if < 0
+  double avg_reprojection_error = -1;  // omitted if < 0
+  std::vector<double> param_std;       // per-parameter standard deviations (omitted if empty)
   std::vector<std::pair<std::string, std::string>> strings;  // free-form text fields
 };
 // Writes OpenCV YAML (".yml"/".yaml") or JSON (".json") in cv::FileStorage format.

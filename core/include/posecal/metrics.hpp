@@ -9,9 +9,9 @@
 namespace posecal {
 
 struct TestError {
-  double rms_px = 0;       // eps_test: RMS reprojection error over all held-out points
-  int frames_used = 0;     // frames whose pose could be fitted
-  int frames_failed = 0;   // frames where PnP failed (counted, not hidden)
+  double rms_px = 0;      // eps_test: RMS reprojection error over all held-out points
+  int frames_used = 0;    // frames whose pose could be fitted
+  int frames_failed = 0;  // frames where PnP failed (counted, not hidden)
   int points = 0;
 };
 

@@ -16,9 +16,9 @@ struct ImageVerdict {
 
 struct OfflineCalibration {
   CalibrationResult result;
-  std::vector<std::string> used;         // files whose detections were calibrated, in name order
-  std::vector<ImageVerdict> rejected;    // unreadable, wrong size, target not found ...
-  std::vector<Observation> observations; // of the used files
+  std::vector<std::string> used;          // files whose detections were calibrated, in name order
+  std::vector<ImageVerdict> rejected;     // unreadable, wrong size, target not found ...
+  std::vector<Observation> observations;  // of the used files
 };
 
 struct OfflineOptions {

@@ -19,13 +19,13 @@
 namespace posecal {
 
 struct RenderOptions {
-  int supersample = 2;          // n x n samples per pixel
-  double blur_sigma_px = 0.0;   // Gaussian optics blur, output pixels
-  double noise_sigma = 0.0;     // additive Gaussian sensor noise, grey levels
-  double paper_white = 235.0;   // grey level of the board's white at exposure 1
-  double ink_black = 25.0;      // grey level of the board's black at exposure 1
-  double exposure = 1.0;        // multiplies the scene radiance (saturates at 255)
-  double background = 110.0;    // mean background grey level
+  int supersample = 2;               // n x n samples per pixel
+  double blur_sigma_px = 0.0;        // Gaussian optics blur, output pixels
+  double noise_sigma = 0.0;          // additive Gaussian sensor noise, grey levels
+  double paper_white = 235.0;        // grey level of the board's white at exposure 1
+  double ink_black = 25.0;           // grey level of the board's black at exposure 1
+  double exposure = 1.0;             // multiplies the scene radiance (saturates at 255)
+  double background = 110.0;         // mean background grey level
   double background_texture = 30.0;  // amplitude of a smooth random background pattern (0: flat)
   uint64_t seed = 1;
 
@@ -35,7 +35,8 @@ struct RenderOptions {
 
 class SyntheticCamera {
  public:
-  SyntheticCamera(const CameraModel& truth, const Target& target, const RenderOptions& options = {});
+  SyntheticCamera(const CameraModel& truth, const Target& target,
+                  const RenderOptions& options = {});
   ~SyntheticCamera();
   SyntheticCamera(SyntheticCamera&&) noexcept;
   SyntheticCamera& operator=(SyntheticCamera&&) noexcept;

@@ -35,10 +35,10 @@ struct TargetSpec {
 };
 
 struct Detection {
-  std::vector<int> ids;                    // corner ids, ascending
-  std::vector<cv::Point2d> image_points;   // subpixel, OpenCV pixel convention
-  std::vector<cv::Point3d> board_points;   // matching board coordinates (z = 0)
-  int markers = 0;                         // ArUco markers seen (ChArUco only)
+  std::vector<int> ids;                   // corner ids, ascending
+  std::vector<cv::Point2d> image_points;  // subpixel, OpenCV pixel convention
+  std::vector<cv::Point3d> board_points;  // matching board coordinates (z = 0)
+  int markers = 0;                        // ArUco markers seen (ChArUco only)
   size_t size() const { return ids.size(); }
   bool empty() const { return ids.empty(); }
 };
