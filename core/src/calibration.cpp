@@ -442,4 +442,61 @@ CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size ima
   return res;
 }
 
+Eigen::MatrixXd frame_information(const CameraModel& model, const Pose& T_cam_board,
+                                  const std::vector<cv::Point3d>& board_points,
+                                  const std::vector<bool>& fixed) {
+  const int n = model.num_params();
+  if (static_cast<int>(fixed.size()) != n) throw Error(ErrorCode::kInvalidArgument, "frame_information: fixed size");
+  std::vector<int> free_idx;
+  for (int i = 0; i < n; ++i)
+    if (!fixed[i]) free_idx.push_back(i);
+  const int m = static_cast<int>(free_idx.size());
+  constexpr int kN = kMaxIntrinsics + 6;
+  using Jet = ceres::Jet<double, kN>;
+  Eigen::MatrixXd A = Eigen::MatrixXd::Zero(m, m), B = Eigen::MatrixXd::Zero(m, 6);
+  Eigen::Matrix<double, 6, 6> D = Eigen::Matrix<double, 6, 6>::Zero();
+  Jet intr[kMaxIntrinsics], rt[6];
+  for (int i = 0; i < n; ++i) intr[i] = Jet(model.params()[i]);
+  for (int k = 0; k < m; ++k) intr[free_idx[k]].v[k] = 1.0;
+  for (int k = 0; k < 3; ++k) {
+    rt[k] = Jet(T_cam_board.r[k], kMaxIntrinsics + k);
+    rt[3 + k] = Jet(T_cam_board.t[k], kMaxIntrinsics + 3 + k);
+  }
+  Eigen::MatrixXd Ji(2, m);
+  Eigen::Matrix<double, 2, 6> Jp;
+  for (const auto& P : board_points) {
+    const Jet Pb[3] = {Jet(P.x), Jet(P.y), Jet(P.z)};
+    Jet pc[3];
+    ceres::AngleAxisRotatePoint(rt, Pb, pc);
+    for (int k = 0; k < 3; ++k) pc[k] += rt[3 + k];
+    if (!(pc[2].a > 1e-9)) continue;
+    Jet uv[2];
+    project_generic(model.lens_model(), intr, pc, uv);
+    if (!(uv[0].a >= -0.5 && uv[0].a <= model.width() - 0.5 && uv[1].a >= -0.5 && uv[1].a <= model.height() - 0.5)) {
+      continue;  // not observed
+    }
+    for (int r = 0; r < 2; ++r) {
+      for (int k = 0; k < m; ++k) Ji(r, k) = uv[r].v[k];
+      for (int k = 0; k < 6; ++k) Jp(r, k) = uv[r].v[kMaxIntrinsics + k];
+    }
+    A += Ji.transpose() * Ji;
+    B += Ji.transpose() * Jp;
+    D += Jp.transpose() * Jp;
+  }
+  const Eigen::LDLT<Eigen::Matrix<double, 6, 6>> ldlt(D);
+  if (ldlt.info() != Eigen::Success || !(D.trace() > 0)) return Eigen::MatrixXd::Zero(m, m);
+  return A - B * ldlt.solve(B.transpose());
+}
+
+Eigen::MatrixXd intrinsics_information(const CalibrationResult& result) {
+  std::vector<int> free_idx;
+  for (size_t i = 0; i < result.fixed.size(); ++i)
+    if (!result.fixed[i]) free_idx.push_back(static_cast<int>(i));
+  const int m = static_cast<int>(free_idx.size());
+  Eigen::MatrixXd C(m, m);
+  for (int a = 0; a < m; ++a)
+    for (int b = 0; b < m; ++b) C(a, b) = result.covariance(free_idx[a], free_idx[b]);
+  return C.ldlt().solve(Eigen::MatrixXd::Identity(m, m));
+}
+
 }  // namespace posecal

@@ -109,6 +109,91 @@ POSECAL_API posecal_status posecal_calibration_save(const posecal_calibration* c
                                                     const char* path) POSECAL_NOEXCEPT;
 POSECAL_API void posecal_calibration_destroy(posecal_calibration* cal) POSECAL_NOEXCEPT;
 
+/* ---- Calibration sessions: one camera, one pose-selection engine --------------------------- */
+typedef struct posecal_session posecal_session;
+
+typedef enum posecal_pixel_format {
+  POSECAL_PIXEL_MONO8 = 0,
+  POSECAL_PIXEL_BGR8 = 1,
+  POSECAL_PIXEL_RGB8 = 2
+} posecal_pixel_format;
+
+/* A host image. struct_size = sizeof(posecal_image), set by the caller, so the struct can grow
+ * in later ABI versions. The library never keeps `data` beyond the call. */
+typedef struct posecal_image {
+  uint32_t struct_size;
+  int32_t width;
+  int32_t height;
+  int32_t stride_bytes;
+  int32_t format; /* posecal_pixel_format */
+  void* data;
+} posecal_image;
+
+/* Opens a session on a camera (URI as listed by posecal_list_cameras, or "sim://?...",
+ * "images://DIR", "external"). config_json: NULL for defaults, or an object with optional keys
+ *   "target": spec string (default "charuco:9x6:0.028:0.0182:DICT_4X4_50"),
+ *   "operator": "person" | "robot"   (robot: the host reports poses reached),
+ *   "convergence_threshold" (0.1), "max_keyframes" (20), "jaccard_threshold" (0.8),
+ *   "still_motion_px" (1.5), "constraint_factor" (5), "target_timeout_frames" (0 = never),
+ *   "pose_candidates" (int), "lock_settings" (true), "max_tilt_deg" (70)
+ * An unknown key is POSECAL_E_INVALID_ARGUMENT. Opening a camera may block up to ~3 s. */
+POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char* camera_uri,
+                                                const char* config_json,
+                                                posecal_session** out) POSECAL_NOEXCEPT;
+/* Stops the camera and frees the session. NULL-tolerant. Must not be called from the session's
+ * own event callback. */
+POSECAL_API void posecal_session_close(posecal_session* session) POSECAL_NOEXCEPT;
+
+/* Takes one frame from the session's camera (waiting at most timeout_ms) and advances the state
+ * machine. POSECAL_OK: a frame was processed. POSECAL_E_TIMEOUT: no frame in time.
+ * POSECAL_E_DEVICE: the camera is disconnected (keyframes are kept; keep stepping to resume when
+ * it is back). POSECAL_E_STATE: the calibration has finished, or an "external" session (use
+ * posecal_session_feed). POSECAL_E_NOT_FOUND: a finite source (images://) has no more frames. */
+POSECAL_API posecal_status posecal_session_step(posecal_session* session,
+                                                int timeout_ms) POSECAL_NOEXCEPT;
+/* Processes a host frame synchronously (the state machine has advanced when it returns). For
+ * any session; "external" sessions get frames only this way. */
+POSECAL_API posecal_status posecal_session_feed(posecal_session* session,
+                                                const posecal_image* image) POSECAL_NOEXCEPT;
+
+/* Current status JSON: "state", "converged", "keyframes", "target_parameter", "guidance",
+ * "jaccard", "still", "board_visible", "corners", "image_width", "image_height", "frames",
+ * "camera", "parameters": {"fx": {"value", "std", "converged"}, ...}. */
+POSECAL_API posecal_status posecal_session_status(posecal_session* session, char* buf,
+                                                  size_t* size) POSECAL_NOEXCEPT;
+/* The board pose to reach: rotation vector and translation (metres) of the board frame in the
+ * camera frame. POSECAL_E_STATE when there is no target (before the first frame, or finished). */
+POSECAL_API posecal_status posecal_session_target_pose(posecal_session* session, double rvec[3],
+                                                       double tvec[3]) POSECAL_NOEXCEPT;
+/* Robot mode: the robot has reached the current target; the session captures as soon as the
+ * board is seen and still (the Jaccard check does not gate a robot's capture). */
+POSECAL_API posecal_status posecal_session_pose_reached(posecal_session* session) POSECAL_NOEXCEPT;
+/* Draws the guidance overlay (target board, detected corners, text) into a host image of the
+ * camera's size, in place. */
+POSECAL_API posecal_status posecal_session_render_overlay(posecal_session* session,
+                                                          posecal_image* inout) POSECAL_NOEXCEPT;
+/* Result JSON: "converged", model values, "std", "std_unit", "covariance", "eps_res",
+ * "keyframes", "camera" identity, "locked_settings", "started"/"finished" timestamps; for
+ * sim:// cameras also "eps_test", "eps_gt" and the ground truth. POSECAL_E_STATE before the
+ * second keyframe (no calibration yet). */
+POSECAL_API posecal_status posecal_session_result(posecal_session* session, char* buf,
+                                                  size_t* size) POSECAL_NOEXCEPT;
+/* Saves the calibration: OpenCV YAML (.yml/.yaml) or JSON (.json) by extension. */
+POSECAL_API posecal_status posecal_session_save(posecal_session* session,
+                                                const char* path) POSECAL_NOEXCEPT;
+
+/* Events: called with a kind ("state_changed", "captured", "keyframe_rejected", "calibrated",
+ * "parameter_converged", "target_changed", "target_skipped", "camera_disconnected",
+ * "camera_reconnected", "error") and a JSON payload, on every state change, capture and error.
+ * Called on the thread that is inside posecal_session_step/feed, before that call returns.
+ * Inside the callback only posecal_session_status, posecal_session_target_pose and
+ * posecal_last_error may be called on the same session. The strings are valid only during the
+ * call. fn = NULL removes the callback. */
+typedef void (*posecal_event_fn)(void* user_data, const char* kind, const char* payload_json);
+POSECAL_API posecal_status posecal_session_set_callback(posecal_session* session,
+                                                        posecal_event_fn fn,
+                                                        void* user_data) POSECAL_NOEXCEPT;
+
 #ifdef __cplusplus
 }
 #endif

@@ -3,6 +3,7 @@
 #include <algorithm>
 
 #include "posecal/error.hpp"
+#include "posecal/simulation.hpp"
 #include "posecal/sources.hpp"
 
 using posecal::Error;
@@ -12,11 +13,12 @@ namespace {
 
 // Backends this build knows, in listing order.
 const std::vector<std::string>& known_backends() {
-  static const std::vector<std::string> names = {"images", "external"};
+  static const std::vector<std::string> names = {"sim", "images", "external"};
   return names;
 }
 
 std::shared_ptr<posecal::CameraBackend> make_backend(const std::string& name) {
+  if (name == "sim") return posecal::make_sim_backend();
   if (name == "images") return posecal::make_images_backend();
   if (name == "external") return posecal::make_external_backend();
   throw Error(ErrorCode::kInternal, "no factory for backend '" + name + "'");

@@ -1,13 +1,14 @@
 // sysfs -> stable identity of video nodes (see v4l2_identity.hpp for the layout it reads).
-#include "posecal/v4l2_identity.hpp"
-
 #include <algorithm>
 #include <cctype>
 #include <cstdint>
 #include <filesystem>
 #include <fstream>
+#include <optional>
 #include <set>
 #include <sstream>
+
+#include "posecal/v4l2_identity.hpp"
 
 namespace posecal {
 
@@ -101,7 +102,7 @@ size_t utf8_char_length(const std::string& s, size_t i) {
     cp = (cp << 6) | (byte(i + k) & 0x3F);
   }
   static constexpr uint32_t kMinForLength[5] = {0, 0, 0x80, 0x800, 0x10000};
-  if (cp < kMinForLength[len]) return 0;                 // overlong
+  if (cp < kMinForLength[len]) return 0;  // overlong
   if (cp > 0x10FFFF || (cp >= 0xD800 && cp <= 0xDFFF)) return 0;
   if ((cp >= 0xFDD0 && cp <= 0xFDEF) || (cp & 0xFFFE) == 0xFFFE) return 0;  // non-characters
   return len;
@@ -129,7 +130,8 @@ std::string replace_chars(std::string s) {
   return s;
 }
 
-std::optional<fs::path> usb_device_dir(const std::string& sysfs_root, const std::string& usb_device) {
+std::optional<fs::path> usb_device_dir(const std::string& sysfs_root,
+                                       const std::string& usb_device) {
   if (usb_device.empty() || usb_device.find('/') != std::string::npos) return std::nullopt;
   return resolve(fs::path(sysfs_root) / "bus" / "usb" / "devices" / usb_device);
 }
@@ -157,11 +159,10 @@ std::string udev_usb_serial_id(const std::string& vendor_id, const std::string& 
   std::string id = replace_chars(replace_whitespace(vendor, 63)) + "_" +
                    replace_chars(replace_whitespace(model, 63));
   // usb_id drops serials with characters outside printable ASCII or with commas.
-  const bool serial_ok =
-      std::all_of(serial.begin(), serial.end(), [](char ch) {
-        const unsigned char c = static_cast<unsigned char>(ch);
-        return c >= 0x20 && c <= 0x7F && c != ',';
-      });
+  const bool serial_ok = std::all_of(serial.begin(), serial.end(), [](char ch) {
+    const unsigned char c = static_cast<unsigned char>(ch);
+    return c >= 0x20 && c <= 0x7F && c != ',';
+  });
   if (serial_ok) {
     const std::string s = replace_chars(replace_whitespace(serial, 511));
     if (!s.empty()) id += "_" + s;
@@ -186,7 +187,8 @@ std::string v4l2_control_name(const std::string& kernel_name) {
   return out;
 }
 
-std::vector<std::string> list_v4l2_nodes(const std::string& sysfs_root, const std::string& dev_root) {
+std::vector<std::string> list_v4l2_nodes(const std::string& sysfs_root,
+                                         const std::string& dev_root) {
   std::set<std::string> names;
   std::error_code ec;
   for (const fs::path& dir : {fs::path(sysfs_root) / "class" / "video4linux", fs::path(dev_root)}) {
@@ -239,10 +241,10 @@ V4l2NodeIdentity identify_v4l2_node(const std::string& sysfs_root, const std::st
       id.busnum = -1;
     }
     id.interface_class = attr_or_empty(*parent / "bInterfaceClass");
-    id.stable_id = "usb-" +
-                   udev_usb_serial_id(id.vendor_id, id.product_id, id.manufacturer, id.product,
-                                      id.serial) +
-                   "-video-index" + std::to_string(index);
+    id.stable_id =
+        "usb-" +
+        udev_usb_serial_id(id.vendor_id, id.product_id, id.manufacturer, id.product, id.serial) +
+        "-video-index" + std::to_string(index);
     return id;
   }
   // Not USB: by-path style "<bus>-<device>-video-index<N>".
@@ -270,13 +272,15 @@ std::vector<std::string> v4l2_nodes_of_usb_device(const std::string& sysfs_root,
   return out;
 }
 
-bool usb_device_has_video_interface(const std::string& sysfs_root, const std::string& usb_device) {
+std::vector<std::string> usb_interface_classes(const std::string& sysfs_root,
+                                               const std::string& usb_device) {
+  std::vector<std::string> out;
   const auto dir = usb_device_dir(sysfs_root, usb_device);
-  if (!dir) return false;
+  if (!dir) return out;
   for (const fs::path& iface : usb_interfaces(*dir)) {
-    if (attr_or_empty(iface / "bInterfaceClass") == "0e") return true;
+    out.push_back(attr_or_empty(iface / "bInterfaceClass"));
   }
-  return false;
+  return out;
 }
 
 }  // namespace posecal

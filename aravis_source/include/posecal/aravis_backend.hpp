@@ -4,9 +4,9 @@
 //   aravis://<device id | serial number | IPv4 address>[?option=value&...]
 //
 // e.g. aravis://Basler-21234567, aravis://21234567, aravis://192.168.1.20?packet_size=8000.
-// The query options are the transport and liveness fields of AravisBackendOptions below, by the
-// same names (packet_size, packet_resend=always|never, socket_buffer_size, packet_timeout_us,
-// frame_retention_us, extra_buffers, max_lent_buffers, zero_copy=0|1, frame_timeout_ms,
+// The query options are fields of AravisBackendOptions below, by the same names (packet_size,
+// packet_resend=always|never, socket_buffer_size, packet_timeout_us, frame_retention_us,
+// packet_socket=0|1, extra_buffers, max_lent_buffers, zero_copy=0|1, frame_timeout_ms,
 // probe_timeout_ms, probe_retries, auto_reconnect=0|1); they override the backend's defaults
 // for that one camera. docs/aravis.md describes the threads, the frame path, disconnect
 // detection and reconnection.
@@ -35,6 +35,9 @@ struct AravisBackendOptions {
   // (give up on an incomplete frame), microseconds.
   int packet_timeout_us = 20000;
   int frame_retention_us = 100000;
+  // Let Aravis receive GVSP through a memory-mapped packet socket where the process may open one
+  // (CAP_NET_RAW, e.g. root); false always uses the ordinary UDP socket.
+  bool packet_socket = true;
 
   // --- Buffers ---
   // The stream owns queue_depth + max_lent_buffers + extra_buffers buffers; extra_buffers are

@@ -80,6 +80,18 @@ CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size ima
                             const CalibrationOptions& options = {},
                             const WarmStart* warm_start = nullptr);
 
+// Information about the intrinsics (J^T J with Sigma_p = I, free parameters only, in the order
+// of `fixed`'s false entries) that observing `board_points` at T_cam_board would add: the Schur
+// complement of one frame's normal equations onto the intrinsics. Adding it to the inverse of
+// the current intrinsics covariance predicts the covariance after that frame, exactly at the
+// linearisation point.
+Eigen::MatrixXd frame_information(const CameraModel& model, const Pose& T_cam_board,
+                                  const std::vector<cv::Point3d>& board_points,
+                                  const std::vector<bool>& fixed);
+
+// Marginal information of the free intrinsics from a result: inverse of their covariance block.
+Eigen::MatrixXd intrinsics_information(const CalibrationResult& result);
+
 // Fits the pose of one frame with fixed intrinsics (PnP, then Ceres refinement). Returns false if
 // the frame has fewer than 4 points or the fit fails.
 bool estimate_pose(const CameraModel& model, const Observation& frame, Pose* T_cam_board,

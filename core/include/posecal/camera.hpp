@@ -133,6 +133,9 @@ struct GuidanceInfo {
   Pose T_cam_board_target;     // target board pose in the camera frame
   CameraModel estimate;        // current intrinsics, used to draw the overlay
   uint64_t target_serial = 0;  // increments with every new target
+  std::string target_kind;     // "init-tilted", "init-fronto-parallel", "pinhole", "distortion"
+  int keyframes = 0;           // keyframes captured so far
+  bool finished = false;       // converged or failed: nothing more to show
 };
 
 class Camera {
@@ -168,6 +171,9 @@ class Camera {
 
   // Guided cameras (sim://) receive the engine's current target; others ignore it.
   virtual void guide(const GuidanceInfo& /*guidance*/) {}
+  // A guided camera that moves the board itself (a simulated robot) returns true once when it
+  // has reached the current target; the session then reports "pose reached" to the engine.
+  virtual bool take_pose_reached() { return false; }
 };
 
 class CameraBackend {

@@ -28,8 +28,8 @@ namespace posecal {
 // A USB hot-plug notification, as libusb reports it.
 struct UsbHotplugEvent {
   enum class Kind { kArrived, kLeft } kind = Kind::kArrived;
-  int bus = 0;                // libusb_get_bus_number
-  std::vector<int> ports;     // libusb_get_port_numbers, root hub port first
+  int bus = 0;             // libusb_get_bus_number
+  std::vector<int> ports;  // libusb_get_port_numbers, root hub port first
   uint16_t vendor_id = 0;
   uint16_t product_id = 0;
   // The kernel's name of the device in /sys/bus/usb/devices: "<bus>-<port>.<port>...", "" for a
@@ -77,16 +77,16 @@ struct V4l2FrameSize {
     uint32_t denominator = 0;
     double rate_hz() const { return numerator ? static_cast<double>(denominator) / numerator : 0; }
   };
-  std::vector<Interval> intervals;   // discrete intervals
-  double min_rate_hz = 0;            // continuous/stepwise intervals: range of rates
+  std::vector<Interval> intervals;  // discrete intervals
+  double min_rate_hz = 0;           // continuous/stepwise intervals: range of rates
   double max_rate_hz = 0;
 };
 
 // A pixel format the device offers (VIDIOC_ENUM_FMT + ENUM_FRAMESIZES + ENUM_FRAMEINTERVALS).
 struct V4l2Format {
   uint32_t fourcc = 0;
-  std::string fourcc_text;       // "MJPG", "YUYV", "GREY"
-  std::string description;       // the driver's text, e.g. "Motion-JPEG"
+  std::string fourcc_text;                           // "MJPG", "YUYV", "GREY"
+  std::string description;                           // the driver's text, e.g. "Motion-JPEG"
   PixelFormat pixel_format = PixelFormat::kUnknown;  // kUnknown: posecal cannot decode it
   bool compressed = false;
   // Discrete sizes, or (stepwise) a range of sizes in `min`/`max`/`step`; for a stepwise format

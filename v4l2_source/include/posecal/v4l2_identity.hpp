@@ -26,19 +26,19 @@
 namespace posecal {
 
 struct V4l2NodeIdentity {
-  std::string node;        // "video0"
-  std::string dev_path;    // <dev root>/video0
-  int index = -1;          // sysfs "index" attribute, -1 if absent
-  std::string name;        // sysfs "name" attribute (the driver's card name)
-  std::string stable_id;   // "usb-046d_HD_Webcam_C525_0320EC60-video-index0"; "" if unknown
+  std::string node;       // "video0"
+  std::string dev_path;   // <dev root>/video0
+  int index = -1;         // sysfs "index" attribute, -1 if absent
+  std::string name;       // sysfs "name" attribute (the driver's card name)
+  std::string stable_id;  // "usb-046d_HD_Webcam_C525_0320EC60-video-index0"; "" if unknown
 
   bool usb = false;
-  std::string usb_device;     // sysfs name of the USB device, "<bus>-<port>[.<port>...]", e.g. "1-2"
+  std::string usb_device;  // sysfs name of the USB device, "<bus>-<port>[.<port>...]", e.g. "1-2"
   int busnum = -1;
-  std::string devpath;        // port path within the bus, "2" or "3.1"
-  std::string vendor_id;      // idVendor, 4 hex digits
-  std::string product_id;     // idProduct
-  std::string manufacturer;   // string descriptors as the kernel shows them ("" if absent)
+  std::string devpath;       // port path within the bus, "2" or "3.1"
+  std::string vendor_id;     // idVendor, 4 hex digits
+  std::string product_id;    // idProduct
+  std::string manufacturer;  // string descriptors as the kernel shows them ("" if absent)
   std::string product;
   std::string serial;
   std::string interface_class;  // bInterfaceClass of the interface the node hangs off ("0e")
@@ -47,7 +47,8 @@ struct V4l2NodeIdentity {
 // Names of the video nodes ("video0", "video2", ...), numerically sorted: the entries of
 // <sysfs_root>/class/video4linux, plus <dev_root>/video* for systems without sysfs (containers).
 // Empty, not an error, when neither exists.
-std::vector<std::string> list_v4l2_nodes(const std::string& sysfs_root, const std::string& dev_root);
+std::vector<std::string> list_v4l2_nodes(const std::string& sysfs_root,
+                                         const std::string& dev_root);
 
 // Identity of one node from sysfs. Without sysfs information only `node` and `dev_path` are set.
 V4l2NodeIdentity identify_v4l2_node(const std::string& sysfs_root, const std::string& dev_root,
@@ -58,9 +59,10 @@ V4l2NodeIdentity identify_v4l2_node(const std::string& sysfs_root, const std::st
 std::vector<std::string> v4l2_nodes_of_usb_device(const std::string& sysfs_root,
                                                   const std::string& usb_device);
 
-// True if the USB device has a Video-class interface (bInterfaceClass 0x0e), i.e. may become a
-// camera once uvcvideo binds it.
-bool usb_device_has_video_interface(const std::string& sysfs_root, const std::string& usb_device);
+// bInterfaceClass of each interface of the USB device ("0e" is Video: a camera once uvcvideo binds
+// it). Empty while the kernel has not configured the device yet, or if it is unknown.
+std::vector<std::string> usb_interface_classes(const std::string& sysfs_root,
+                                               const std::string& usb_device);
 
 // udev's ID_SERIAL for a USB device (systemd usb_id): manufacturer/product fall back to the ids.
 std::string udev_usb_serial_id(const std::string& vendor_id, const std::string& product_id,

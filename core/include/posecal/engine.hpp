@@ -1,0 +1,158 @@
+// The calibration engine: efficient pose selection (paper §3-§4) as an explicit state machine
+// fed one frame at a time. It knows nothing of where frames come from.
+//
+//   WaitingForBoard --board seen--> Bootstrapping --focal-only fit ok--> InitialPose1
+//   InitialPose1 --keyframe 1--> InitialPose2 --keyframe 2 + calibration--> Refining(param)
+//   Refining --keyframe, all converged--> Converged
+//   Refining --keyframe cap reached--> Failed (result kept, reported as not converged)
+//   any state --fatal error--> Failed
+// A keyframe the calibration rejects (degenerate) is dropped and the same target stays.
+// docs/pose-selection.md draws this with every transition and its event.
+#pragma once
+
+#include <functional>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "posecal/calibration.hpp"
+#include "posecal/camera.hpp"
+#include "posecal/posegen.hpp"
+#include "posecal/target.hpp"
+
+namespace posecal {
+
+enum class EngineState {
+  kWaitingForBoard,
+  kBootstrapping,
+  kInitialPose1,
+  kInitialPose2,
+  kRefining,
+  kConverged,
+  kFailed,
+};
+const char* engine_state_name(EngineState s);
+
+struct EngineOptions {
+  TargetSpec target;                     // the board
+  double convergence_threshold = 0.1;    // ratio test: relative variance reduction (paper §4.1)
+  int max_keyframes = 20;                // cap; reaching it ends the run as not converged
+  double constraint_factor = 5.0;        // constraints >= factor x unknowns (paper §4.3)
+  double still_motion_px = 1.5;          // mean corner motion between frames (paper §4.3)
+  double jaccard_threshold = 0.8;        // target reached (paper §4.2)
+  bool robot = false;                    // robot mode: the host reports "pose reached"
+  int target_timeout_frames = 0;         // > 0: skip a refinement target after this many frames
+  int bootstrap_min_corners = 0;         // 0: half the board's corners (reference implementation)
+  // A bootstrap is accepted only if its focal length is determined to this relative standard
+  // deviation at 1 px noise; among accepted ones the lowest residual wins (paper §3.4). A nearly
+  // fronto-parallel view fits any focal length with a low residual, so the residual alone would
+  // prefer exactly the views that cannot tell f (docs/pose-selection.md).
+  double bootstrap_max_relative_std = 0.05;
+  double initial_focal_guess = 0.0;      // f before any estimate; 0: max(width, height)
+  // Refinement targets: 1 = the paper's rule (next sequence element / most distorted region);
+  // n > 1 = the best of the first n rule-generated candidates by predicted variance of the
+  // targeted parameter (docs/pose-selection.md).
+  int pose_candidates = 1;
+  PoseGenOptions posegen;
+  CalibrationOptions calibration;
+  DetectorOptions detector;
+  bool is_valid(std::string* error) const;
+};
+
+struct FrameReport {
+  uint64_t frame_index = 0;
+  EngineState state = EngineState::kWaitingForBoard;
+  bool board_visible = false;
+  int corners = 0;
+  int corners_required = 0;   // for a keyframe now (paper §4.3 heuristic)
+  bool pose_estimated = false;
+  double jaccard = -1;        // -1 when no target or no pose
+  bool still = false;
+  double motion_px = -1;      // mean corner motion since the previous frame, -1 if not comparable
+  bool pose_reached = false;
+  bool captured = false;
+  int keyframes = 0;
+  std::string target_parameter;  // "" during initialisation and after the end
+  std::string guidance;          // what the person should do now
+};
+
+struct EngineEvent {
+  enum class Kind {
+    kStateChanged,       // from -> to
+    kCaptured,           // a keyframe was taken
+    kKeyframeRejected,   // the calibration could not use it (message says why)
+    kCalibrated,         // recalibrated after a keyframe
+    kParameterConverged, // `parameter` converged
+    kTargetChanged,      // a new target pose (note says what was adjusted)
+    kTargetSkipped,      // target not reached within target_timeout_frames
+    kError,              // a problem worth reporting that did not stop the engine
+  };
+  explicit EngineEvent(Kind k) : kind(k) {}
+  Kind kind;
+  EngineState from = EngineState::kWaitingForBoard;
+  EngineState to = EngineState::kWaitingForBoard;
+  int keyframes = 0;
+  std::string parameter;
+  std::string message;
+};
+const char* engine_event_name(EngineEvent::Kind k);
+
+struct ParameterStatus {
+  std::string name;
+  double value = 0;
+  double std = -1;       // scaled by the residual variance (honest); -1 before calibration
+  double std_unit = -1;  // Sigma_p = I (paper eq. 5)
+  double index_of_dispersion = -1;
+  bool converged = false;
+  int targeted = 0;      // keyframes captured for this parameter
+};
+
+class CalibrationEngine {
+ public:
+  CalibrationEngine(cv::Size image_size, const EngineOptions& options = {});
+  ~CalibrationEngine();
+  CalibrationEngine(const CalibrationEngine&) = delete;
+  CalibrationEngine& operator=(const CalibrationEngine&) = delete;
+
+  // Processes one frame (8-bit grey or BGR, the engine's image size) and advances the state
+  // machine. Throws Error(kInvalidArgument) for an image of the wrong size or type.
+  FrameReport process(const cv::Mat& image);
+
+  // Robot mode: the host says the robot has reached the current target; the next still frame
+  // with enough corners is captured. Error(kState) outside the initial/refining states.
+  void report_pose_reached();
+  // Gives up on the current refinement target and generates the next one.
+  void skip_target();
+
+  EngineState state() const;
+  const std::string& failure_reason() const;
+  int keyframes() const;
+  bool converged() const { return state() == EngineState::kConverged; }
+  // The current target (none while waiting for the board and after the end).
+  const std::optional<TargetPose>& target() const;
+  int target_parameter() const;  // index, -1 if none
+  // Current intrinsics: the initial guess, then the bootstrap, then the calibration.
+  const CameraModel& estimate() const;
+  // The last full calibration (nullptr before the second keyframe).
+  const CalibrationResult* result() const;
+  std::vector<ParameterStatus> parameters() const;
+  const std::vector<Observation>& keyframe_observations() const;
+  const FrameReport& last_report() const;
+  const Target& board() const;
+  const EngineOptions& options() const;
+  // What a guided camera (simulated operator) needs.
+  GuidanceInfo guidance_info() const;
+
+  // Draws the guidance overlay into an 8-bit grey or BGR image of the engine's size: the target
+  // board projected with the current intrinsics and distortion, the detected corners, the text.
+  void draw_overlay(cv::Mat& image) const;
+
+  void set_event_callback(std::function<void(const EngineEvent&)> cb);
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace posecal

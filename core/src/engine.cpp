@@ -1,0 +1,588 @@
+#include "posecal/engine.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <map>
+#include <opencv2/imgproc.hpp>
+
+#include "posecal/error.hpp"
+
+namespace posecal {
+
+const char* engine_state_name(EngineState s) {
+  switch (s) {
+    case EngineState::kWaitingForBoard: return "waiting_for_board";
+    case EngineState::kBootstrapping: return "bootstrapping";
+    case EngineState::kInitialPose1: return "initial_pose_1";
+    case EngineState::kInitialPose2: return "initial_pose_2";
+    case EngineState::kRefining: return "refining";
+    case EngineState::kConverged: return "converged";
+    case EngineState::kFailed: return "failed";
+  }
+  return "unknown";
+}
+
+const char* engine_event_name(EngineEvent::Kind k) {
+  switch (k) {
+    case EngineEvent::Kind::kStateChanged: return "state_changed";
+    case EngineEvent::Kind::kCaptured: return "captured";
+    case EngineEvent::Kind::kKeyframeRejected: return "keyframe_rejected";
+    case EngineEvent::Kind::kCalibrated: return "calibrated";
+    case EngineEvent::Kind::kParameterConverged: return "parameter_converged";
+    case EngineEvent::Kind::kTargetChanged: return "target_changed";
+    case EngineEvent::Kind::kTargetSkipped: return "target_skipped";
+    case EngineEvent::Kind::kError: return "error";
+  }
+  return "unknown";
+}
+
+bool EngineOptions::is_valid(std::string* error) const {
+  auto fail = [&](const std::string& w) {
+    if (error) *error = w;
+    return false;
+  };
+  try {
+    target.validate();
+  } catch (const Error& e) {
+    return fail(std::string("target: ") + e.what());
+  }
+  if (!(convergence_threshold > 0 && convergence_threshold < 1)) return fail("convergence_threshold must be in (0, 1)");
+  if (max_keyframes < 3 || max_keyframes > 1000) return fail("max_keyframes must be in [3, 1000]");
+  if (!(constraint_factor >= 1 && constraint_factor <= 50)) return fail("constraint_factor must be in [1, 50]");
+  if (!(still_motion_px > 0 && still_motion_px < 100)) return fail("still_motion_px must be in (0, 100)");
+  if (!(jaccard_threshold > 0 && jaccard_threshold < 1)) return fail("jaccard_threshold must be in (0, 1)");
+  if (target_timeout_frames < 0) return fail("target_timeout_frames must be >= 0");
+  if (pose_candidates < 1 || pose_candidates > 64) return fail("pose_candidates must be in [1, 64]");
+  if (bootstrap_min_corners < 0) return fail("bootstrap_min_corners must be >= 0");
+  if (!(bootstrap_max_relative_std > 0 && bootstrap_max_relative_std <= 1)) {
+    return fail("bootstrap_max_relative_std must be in (0, 1]");
+  }
+  if (!(initial_focal_guess >= 0) || !std::isfinite(initial_focal_guess)) return fail("initial_focal_guess must be >= 0");
+  std::string why;
+  if (!posegen.is_valid(&why)) return fail("posegen: " + why);
+  if (!calibration.is_valid(&why)) return fail("calibration: " + why);
+  return true;
+}
+
+struct CalibrationEngine::Impl {
+  cv::Size size;
+  EngineOptions opt;
+  Target board;
+  PoseGenerator posegen;
+  std::function<void(const EngineEvent&)> callback;
+
+  EngineState state = EngineState::kWaitingForBoard;
+  std::string failure;
+  CameraModel estimate;            // current intrinsics
+  double best_bootstrap_rms = std::numeric_limits<double>::infinity();
+  bool have_bootstrap = false;
+  std::optional<TargetPose> target;
+  int target_param = -1;
+  uint64_t target_serial = 0;
+  uint64_t target_since_frame = 0;
+
+  std::vector<Observation> keyframes;
+  std::vector<int> keyframe_target;  // parameter each keyframe was captured for (-1: init)
+  std::optional<CalibrationResult> result;
+  Eigen::MatrixXd information;       // marginal information of the free intrinsics (scoring)
+  std::vector<bool> param_converged;
+  std::vector<int> param_targeted;
+  int group_keyframes[2] = {0, 0};   // refinement keyframes captured per parameter group
+
+  Detection previous;
+  bool robot_reached = false;
+  int crowded_frames = 0;  // consecutive still frames at the target with too few corners
+  static constexpr int kCrowdedFrames = 3;
+  uint64_t frame_index = 0;
+  FrameReport last;
+
+  Impl(cv::Size s, const EngineOptions& o)
+      : size(s), opt(o), board(o.target), posegen(board, s, o.posegen) {
+    const double f = o.initial_focal_guess > 0 ? o.initial_focal_guess : std::max(s.width, s.height);
+    estimate = CameraModel::opencv5(s.width, s.height, f, f, (s.width - 1) * 0.5, (s.height - 1) * 0.5,
+                                    {0, 0, 0, 0, 0});
+    const int n = estimate.num_params();
+    param_converged.assign(n, false);
+    param_targeted.assign(n, 0);
+  }
+
+  void emit(EngineEvent e) {
+    e.keyframes = static_cast<int>(keyframes.size());
+    if (callback) callback(e);
+  }
+
+  void set_state(EngineState s, const std::string& message = "") {
+    if (s == state) return;
+    EngineEvent e{EngineEvent::Kind::kStateChanged};
+    e.from = state;
+    e.to = s;
+    e.message = message;
+    state = s;
+    emit(e);
+  }
+
+  void fail(const std::string& why) {
+    failure = why;
+    target.reset();
+    set_state(EngineState::kFailed, why);
+  }
+
+  void set_target(TargetPose t, int param) {
+    target = std::move(t);
+    target_param = param;
+    ++target_serial;
+    target_since_frame = frame_index;
+    robot_reached = false;
+    crowded_frames = 0;
+    EngineEvent e{EngineEvent::Kind::kTargetChanged};
+    e.parameter = param >= 0 ? estimate.param_names()[param] : "";
+    e.message = target->kind + (target->note.empty() ? "" : ": " + target->note);
+    emit(e);
+  }
+
+  // Points needed per keyframe so that constraints >= factor x unknowns (paper §4.3): for the
+  // two initial frames the unknowns are the intrinsics plus 6 per frame, spread over both
+  // frames; afterwards every frame only adds its own 6 pose parameters.
+  int corners_required() const {
+    const double n_intr = estimate.num_params();
+    double pts;
+    if (keyframes.size() < 2) {
+      pts = opt.constraint_factor * (n_intr + 2 * 6) / 2.0 / 2.0;
+    } else {
+      pts = opt.constraint_factor * 6 / 2.0;
+    }
+    return static_cast<int>(std::ceil(pts - 1e-9));
+  }
+
+  int bootstrap_min_corners() const {
+    return opt.bootstrap_min_corners > 0 ? opt.bootstrap_min_corners : std::max(6, board.num_corners() / 2);
+  }
+
+  // Paper §3.4: a single-frame calibration of the focal length only (principal point at the
+  // centre, no distortion); the best by residual is kept.
+  bool try_bootstrap(const Detection& det) {
+    if (static_cast<int>(det.size()) < bootstrap_min_corners()) return false;
+    CalibrationOptions co = opt.calibration;
+    co.fix_principal_point = true;
+    co.fix_aspect_ratio = true;
+    co.zero_distortion = true;
+    co.fixed.clear();
+    try {
+      const CalibrationResult r = calibrate({Observation::from(det)}, size, co);
+      if (r.std_unit[0] > opt.bootstrap_max_relative_std * r.model.fx()) return false;
+      if (r.rms_px < best_bootstrap_rms) {
+        best_bootstrap_rms = r.rms_px;
+        estimate = r.model;
+        have_bootstrap = true;
+        return true;
+      }
+    } catch (const Error&) {
+      // Degenerate view (e.g. fronto-parallel): the focal length is unobservable from it.
+    }
+    return false;
+  }
+
+  void choose_refinement_target() {
+    // MaxIOD (paper §4.1): the parameter with the highest index of dispersion among those not
+    // converged.
+    int best = -1;
+    double best_iod = -1;
+    for (int i = 0; i < estimate.num_params(); ++i) {
+      if (param_converged[i] || result->fixed[i]) continue;
+      if (result->index_of_dispersion[i] > best_iod) {
+        best_iod = result->index_of_dispersion[i];
+        best = i;
+      }
+    }
+    if (best < 0) return;
+    set_target(next_pose(best), best);
+  }
+
+  // Predicted variance of parameter `param` after capturing `t` (Sigma_p = I).
+  double predicted_variance(int param, const TargetPose& t) const {
+    std::vector<int> free_idx;
+    for (size_t i = 0; i < result->fixed.size(); ++i)
+      if (!result->fixed[i]) free_idx.push_back(static_cast<int>(i));
+    const auto it = std::find(free_idx.begin(), free_idx.end(), param);
+    if (it == free_idx.end()) return 0.0;
+    const Eigen::MatrixXd info = information + frame_information(estimate, t.T_cam_board, board.corners(), result->fixed);
+    const Eigen::MatrixXd cov = info.ldlt().solve(Eigen::MatrixXd::Identity(info.rows(), info.cols()));
+    return cov(it - free_idx.begin(), it - free_idx.begin());
+  }
+
+  TargetPose next_pose(int param) {
+    if (opt.pose_candidates <= 1 || !result) return posegen.next_pose(param, estimate);
+    information = intrinsics_information(*result);
+    return posegen.next_pose(param, estimate, [&](const TargetPose& t) { return predicted_variance(param, t); },
+                             opt.pose_candidates);
+  }
+
+  // Ratio test (paper §4.1) on the parameters of the targeted parameter's group.
+  void update_convergence(const CalibrationResult& prev, const CalibrationResult& now, int tgt) {
+    if (tgt < 0) return;
+    const ParamGroup g = param_group(tgt);
+    for (int i = 0; i < estimate.num_params(); ++i) {
+      if (param_converged[i] || param_group(i) != g || now.fixed[i]) continue;
+      const double v0 = prev.std_unit[i] * prev.std_unit[i], v1 = now.std_unit[i] * now.std_unit[i];
+      if (!(v0 > 0)) continue;
+      const double reduction = 1.0 - v1 / v0;
+      // Deviation from the reference implementation (docs/pose-selection.md): the comparison
+      // must be between two keyframes of the group's own strategy. The first keyframe of a
+      // group after initialisation cannot converge parameters it did not target; otherwise p1
+      // and p2 "converge" at the first distortion keyframe whatever it taught about them.
+      const bool evidence = i == tgt || group_keyframes[static_cast<int>(g)] >= 2;
+      if (reduction >= 0 && reduction < opt.convergence_threshold && evidence) {
+        param_converged[i] = true;
+        EngineEvent e{EngineEvent::Kind::kParameterConverged};
+        e.parameter = estimate.param_names()[i];
+        e.message = "variance reduced by " + std::to_string(reduction * 100.0) + "%";
+        emit(e);
+      }
+    }
+  }
+
+  void capture(const Detection& det) {
+    keyframes.push_back(Observation::from(det));
+    keyframe_target.push_back(state == EngineState::kRefining ? target_param : -1);
+    EngineEvent ce{EngineEvent::Kind::kCaptured};
+    ce.parameter = target_param >= 0 && state == EngineState::kRefining ? estimate.param_names()[target_param] : "";
+    ce.message = target ? target->kind : "";
+    emit(ce);
+    robot_reached = false;
+
+    if (keyframes.size() == 1) {
+      set_state(EngineState::kInitialPose2);
+      set_target(posegen.initial_pose(1, estimate), -1);
+      return;
+    }
+    // Recalibrate with every keyframe, warm-started from the previous solution.
+    CalibrationResult now;
+    try {
+      if (result) {
+        const WarmStart ws{result->model, result->poses};
+        now = calibrate(keyframes, size, opt.calibration, &ws);
+      } else {
+        now = calibrate(keyframes, size, opt.calibration);
+      }
+    } catch (const Error& e) {
+      keyframes.pop_back();
+      keyframe_target.pop_back();
+      EngineEvent re{EngineEvent::Kind::kKeyframeRejected};
+      re.message = e.what();
+      emit(re);
+      return;  // same target again
+    }
+    const int tgt = keyframe_target.back();
+    if (tgt >= 0) {
+      ++param_targeted[tgt];
+      ++group_keyframes[static_cast<int>(param_group(tgt))];
+    }
+    const std::optional<CalibrationResult> prev = result;
+    result = now;
+    estimate = now.model;
+    EngineEvent ke{EngineEvent::Kind::kCalibrated};
+    ke.message = "rms " + std::to_string(now.rms_px) + " px";
+    emit(ke);
+    if (prev && tgt >= 0) update_convergence(*prev, now, tgt);
+    for (int i = 0; i < estimate.num_params(); ++i)
+      if (now.fixed[i]) param_converged[i] = true;  // nothing to refine
+
+    if (std::all_of(param_converged.begin(), param_converged.end(), [](bool b) { return b; })) {
+      target.reset();
+      target_param = -1;
+      set_state(EngineState::kConverged, "every parameter converged");
+      return;
+    }
+    if (static_cast<int>(keyframes.size()) >= opt.max_keyframes) {
+      fail("keyframe cap (" + std::to_string(opt.max_keyframes) + ") reached before convergence");
+      return;
+    }
+    set_state(EngineState::kRefining);
+    choose_refinement_target();
+  }
+
+  std::string guidance_text(const FrameReport& r, const std::optional<Pose>& current) const {
+    switch (state) {
+      case EngineState::kConverged: return "calibration converged";
+      case EngineState::kFailed: return "calibration stopped: " + failure;
+      case EngineState::kWaitingForBoard: return "show the calibration board to the camera";
+      case EngineState::kBootstrapping:
+        return r.corners < bootstrap_min_corners() ? "show more of the board"
+                                                   : "tilt the board slightly so the focal length can be estimated";
+      default: break;
+    }
+    if (r.captured) return "captured keyframe " + std::to_string(keyframes.size());
+    if (!r.board_visible) return "show the calibration board to the camera";
+    if (r.corners < r.corners_required) {
+      return "show the whole board (" + std::to_string(r.corners) + " of " + std::to_string(r.corners_required) +
+             " corners needed)";
+    }
+    if (r.pose_reached) return "hold still";
+    if (opt.robot) return "waiting for the robot to reach the target pose";
+    if (!current || !target) return "align the board with the overlay";
+    const auto a = projected_outline(estimate, board, target->T_cam_board, 4);
+    const auto b = projected_outline(estimate, board, *current, 4);
+    if (a.empty() || b.empty()) return "align the board with the overlay";
+    const double area_a = std::abs(cv::contourArea(std::vector<cv::Point2f>(a.begin(), a.end())));
+    const double area_b = std::abs(cv::contourArea(std::vector<cv::Point2f>(b.begin(), b.end())));
+    cv::Point2d ca(0, 0), cb(0, 0);
+    for (const auto& p : a) ca += p;
+    for (const auto& p : b) cb += p;
+    ca /= static_cast<double>(a.size());
+    cb /= static_cast<double>(b.size());
+    const cv::Point2d d = ca - cb;
+    const double tol = 0.04 * std::max(size.width, size.height);
+    if (std::abs(d.x) > tol || std::abs(d.y) > tol) {
+      if (std::abs(d.x) >= std::abs(d.y)) return d.x > 0 ? "move right" : "move left";
+      return d.y > 0 ? "move down" : "move up";
+    }
+    if (area_a > 1.15 * area_b) return "move closer";
+    if (area_a < 0.87 * area_b) return "move further away";
+    const Eigen::Vector3d n_t = target->T_cam_board.R().col(2), n_c = current->R().col(2);
+    const double tilt_t = std::acos(std::clamp(n_t.z(), -1.0, 1.0)), tilt_c = std::acos(std::clamp(n_c.z(), -1.0, 1.0));
+    if (tilt_t > tilt_c + 0.09) return "tilt the board further";
+    if (tilt_t < tilt_c - 0.09) return "tilt the board back towards the camera";
+    if (rotation_angle_between(target->T_cam_board.R(), current->R()) > 0.09) return "rotate the board to match the overlay";
+    return "align the board with the overlay";
+  }
+
+  FrameReport process(const cv::Mat& image) {
+    if (image.empty() || image.depth() != CV_8U || (image.channels() != 1 && image.channels() != 3)) {
+      throw Error(ErrorCode::kInvalidArgument, "engine: frames must be 8-bit grey or BGR");
+    }
+    if (image.size() != size) {
+      throw Error(ErrorCode::kInvalidArgument, "engine: frame is " + std::to_string(image.cols) + "x" +
+                                                   std::to_string(image.rows) + ", calibration is for " +
+                                                   std::to_string(size.width) + "x" + std::to_string(size.height));
+    }
+    FrameReport r;
+    r.frame_index = frame_index++;
+    const Detection det = board.detect(image, opt.detector);
+    r.corners = static_cast<int>(det.size());
+    r.board_visible = det.size() >= 4;
+    r.corners_required = corners_required();
+
+    // Stillness (paper §4.3): every corner of the previous frame re-detected, mean motion small.
+    if (!previous.empty() && !det.empty()) {
+      std::map<int, cv::Point2d> now;
+      for (size_t i = 0; i < det.size(); ++i) now[det.ids[i]] = det.image_points[i];
+      double sum = 0;
+      bool all = true;
+      for (size_t i = 0; i < previous.size(); ++i) {
+        auto it = now.find(previous.ids[i]);
+        if (it == now.end()) {
+          all = false;
+          break;
+        }
+        sum += cv::norm(it->second - previous.image_points[i]);
+      }
+      if (all) {
+        r.motion_px = sum / static_cast<double>(previous.size());
+        r.still = r.motion_px < opt.still_motion_px;
+      }
+    }
+    previous = det;
+
+    if (state == EngineState::kWaitingForBoard && r.board_visible) set_state(EngineState::kBootstrapping);
+    if (state == EngineState::kBootstrapping || state == EngineState::kInitialPose1 ||
+        state == EngineState::kInitialPose2) {
+      // Until two keyframes exist, keep improving the bootstrap (paper §3.4).
+      const double f_before = estimate.fx();
+      // A robot shows the board at the literal first target (tilted 45 degrees, a strong view for
+      // f); frames taken while it moves or before it arrives must not set the scale of the
+      // targets it is sent to next.
+      const bool may_bootstrap = !opt.robot || (robot_reached && r.still);
+      if (keyframes.empty() && may_bootstrap && try_bootstrap(det)) {
+        const bool first = state == EngineState::kBootstrapping;
+        if (first) set_state(EngineState::kInitialPose1);
+        // Regenerate the target only when the focal length moved noticeably, so the overlay
+        // does not jitter with every slightly better bootstrap.
+        if (first || !target || std::abs(estimate.fx() - f_before) > 0.02 * f_before) {
+          set_target(posegen.initial_pose(0, estimate), -1);
+        }
+      }
+    }
+    // Robots move to the literal first target even before the bootstrap: give them one.
+    if (state == EngineState::kWaitingForBoard || state == EngineState::kBootstrapping) {
+      if (opt.robot && !target) set_target(posegen.initial_pose(0, estimate), -1);
+    }
+
+    std::optional<Pose> current;
+    const bool active = state == EngineState::kInitialPose1 || state == EngineState::kInitialPose2 ||
+                        state == EngineState::kRefining || (opt.robot && state == EngineState::kBootstrapping);
+    if (active && target && r.board_visible) {
+      Pose p;
+      if (estimate_pose(estimate, Observation::from(det), &p)) {
+        current = p;
+        r.pose_estimated = true;
+        r.jaccard = board_jaccard(estimate, board, target->T_cam_board, p);
+      }
+    }
+    const bool can_capture = state == EngineState::kInitialPose1 || state == EngineState::kInitialPose2 ||
+                             state == EngineState::kRefining;
+    if (can_capture && target) {
+      // Robots: the host's report decides, the Jaccard index (which needs good intrinsics) is
+      // only reported. People: the projected areas must overlap (paper §4.2).
+      r.pose_reached = opt.robot ? robot_reached : (r.jaccard > opt.jaccard_threshold);
+      if (r.pose_reached && r.still && r.corners >= r.corners_required) {
+        r.captured = true;
+        crowded_frames = 0;
+        capture(det);
+      } else if (r.pose_reached && r.still && r.corners < r.corners_required &&
+                 ++crowded_frames >= kCrowdedFrames) {
+        // The board is where it was asked to be but part of it is out of view: the intrinsics
+        // used to place the target are off (a robot follows the literal pose). Move the target
+        // back along the line of sight so the whole board fits.
+        crowded_frames = 0;
+        TargetPose t = *target;
+        const cv::Size2d bs = board.board_size_m();
+        const Eigen::Vector3d c = t.T_cam_board.apply(Eigen::Vector3d(bs.width / 2, bs.height / 2, 0));
+        t.T_cam_board.t += c * 0.1;
+        t.note = "only " + std::to_string(r.corners) + " corners visible at the target: moved back 10%";
+        set_target(t, target_param);
+      } else if (state == EngineState::kRefining && opt.target_timeout_frames > 0 &&
+                 frame_index - target_since_frame > static_cast<uint64_t>(opt.target_timeout_frames)) {
+        EngineEvent e{EngineEvent::Kind::kTargetSkipped};
+        e.parameter = estimate.param_names()[target_param];
+        e.message = "not reached within " + std::to_string(opt.target_timeout_frames) + " frames";
+        emit(e);
+        set_target(next_pose(target_param), target_param);
+      }
+    }
+    r.state = state;
+    r.keyframes = static_cast<int>(keyframes.size());
+    r.target_parameter = (state == EngineState::kRefining && target_param >= 0) ? estimate.param_names()[target_param] : "";
+    r.guidance = guidance_text(r, current);
+    last = r;
+    return r;
+  }
+};
+
+CalibrationEngine::CalibrationEngine(cv::Size image_size, const EngineOptions& options) {
+  std::string why;
+  if (!options.is_valid(&why)) throw Error(ErrorCode::kInvalidArgument, "engine options: " + why);
+  if (image_size.width < 16 || image_size.height < 16) {
+    throw Error(ErrorCode::kInvalidArgument, "engine: image size must be at least 16x16");
+  }
+  impl_ = std::make_unique<Impl>(image_size, options);
+}
+
+CalibrationEngine::~CalibrationEngine() = default;
+
+FrameReport CalibrationEngine::process(const cv::Mat& image) { return impl_->process(image); }
+
+void CalibrationEngine::report_pose_reached() {
+  const EngineState s = impl_->state;
+  if (s == EngineState::kConverged || s == EngineState::kFailed) {
+    throw Error(ErrorCode::kState, std::string("pose reached reported while ") + engine_state_name(s));
+  }
+  if (!impl_->target) throw Error(ErrorCode::kState, "pose reached reported but there is no target yet");
+  impl_->robot_reached = true;
+}
+
+void CalibrationEngine::skip_target() {
+  Impl& s = *impl_;
+  if (s.state != EngineState::kRefining || s.target_param < 0) {
+    throw Error(ErrorCode::kState, std::string("skip_target while ") + engine_state_name(s.state) +
+                                       " (only refinement targets can be skipped)");
+  }
+  EngineEvent e{EngineEvent::Kind::kTargetSkipped};
+  e.parameter = s.estimate.param_names()[s.target_param];
+  e.message = "skipped by the host";
+  s.emit(e);
+  s.set_target(s.next_pose(s.target_param), s.target_param);
+}
+
+EngineState CalibrationEngine::state() const { return impl_->state; }
+const std::string& CalibrationEngine::failure_reason() const { return impl_->failure; }
+int CalibrationEngine::keyframes() const { return static_cast<int>(impl_->keyframes.size()); }
+const std::optional<TargetPose>& CalibrationEngine::target() const { return impl_->target; }
+int CalibrationEngine::target_parameter() const { return impl_->target_param; }
+const CameraModel& CalibrationEngine::estimate() const { return impl_->estimate; }
+const CalibrationResult* CalibrationEngine::result() const { return impl_->result ? &*impl_->result : nullptr; }
+const std::vector<Observation>& CalibrationEngine::keyframe_observations() const { return impl_->keyframes; }
+const FrameReport& CalibrationEngine::last_report() const { return impl_->last; }
+const Target& CalibrationEngine::board() const { return impl_->board; }
+const EngineOptions& CalibrationEngine::options() const { return impl_->opt; }
+void CalibrationEngine::set_event_callback(std::function<void(const EngineEvent&)> cb) { impl_->callback = std::move(cb); }
+
+std::vector<ParameterStatus> CalibrationEngine::parameters() const {
+  const Impl& s = *impl_;
+  std::vector<ParameterStatus> out;
+  for (int i = 0; i < s.estimate.num_params(); ++i) {
+    ParameterStatus p;
+    p.name = s.estimate.param_names()[i];
+    p.value = s.estimate.params()[i];
+    if (s.result) {
+      p.std = s.result->std_scaled[i];
+      p.std_unit = s.result->std_unit[i];
+      p.index_of_dispersion = s.result->index_of_dispersion[i];
+    }
+    p.converged = s.param_converged[i];
+    p.targeted = s.param_targeted[i];
+    out.push_back(p);
+  }
+  return out;
+}
+
+GuidanceInfo CalibrationEngine::guidance_info() const {
+  const Impl& s = *impl_;
+  GuidanceInfo g;
+  g.has_target = s.target.has_value();
+  g.bootstrapping = !s.have_bootstrap && s.keyframes.empty();
+  g.robot = s.opt.robot;
+  if (s.target) g.T_cam_board_target = s.target->T_cam_board;
+  g.estimate = s.estimate;
+  g.target_serial = s.target_serial;
+  g.target_kind = s.target ? s.target->kind : "";
+  g.keyframes = static_cast<int>(s.keyframes.size());
+  g.finished = s.state == EngineState::kConverged || s.state == EngineState::kFailed;
+  return g;
+}
+
+void CalibrationEngine::draw_overlay(cv::Mat& image) const {
+  const Impl& s = *impl_;
+  if (image.empty() || image.depth() != CV_8U || (image.channels() != 1 && image.channels() != 3)) {
+    throw Error(ErrorCode::kInvalidArgument, "overlay: image must be 8-bit grey or BGR");
+  }
+  if (image.size() != s.size) throw Error(ErrorCode::kInvalidArgument, "overlay: image size differs from the camera's");
+  const bool color = image.channels() == 3;
+  const cv::Scalar target_col = color ? cv::Scalar(255, 160, 0) : cv::Scalar(255);
+  const cv::Scalar corner_col = color ? cv::Scalar(0, 220, 0) : cv::Scalar(0);
+  const cv::Scalar text_col = color ? cv::Scalar(0, 255, 255) : cv::Scalar(255);
+  if (s.target) {
+    // The target board, projected with the current intrinsics and distortion: a translucent
+    // sheet plus its square grid (lines sampled densely so distortion bends them).
+    const auto outline = projected_outline(s.estimate, s.board, s.target->T_cam_board, 24);
+    if (!outline.empty()) {
+      std::vector<cv::Point> poly;
+      for (const auto& p : outline) poly.emplace_back(cvRound(p.x), cvRound(p.y));
+      cv::Mat layer = image.clone();
+      cv::fillPoly(layer, std::vector<std::vector<cv::Point>>{poly}, target_col, cv::LINE_AA);
+      cv::addWeighted(layer, 0.35, image, 0.65, 0, image);
+      const cv::Size2d bs = s.board.board_size_m();
+      const double sq = s.board.spec().square_length_m;
+      const int nx = static_cast<int>(std::lround(bs.width / sq)), ny = static_cast<int>(std::lround(bs.height / sq));
+      auto line3d = [&](cv::Point3d a, cv::Point3d b) {
+        std::vector<cv::Point3d> pts;
+        for (int k = 0; k <= 16; ++k) pts.push_back(a + (b - a) * (k / 16.0));
+        const auto pr = project_points(s.estimate, s.target->T_cam_board, pts);
+        std::vector<cv::Point> pl;
+        for (const auto& p : pr)
+          if (std::isfinite(p.x)) pl.emplace_back(cvRound(p.x), cvRound(p.y));
+        if (pl.size() > 1) cv::polylines(image, std::vector<std::vector<cv::Point>>{pl}, false, target_col, 1, cv::LINE_AA);
+      };
+      for (int i = 0; i <= nx; ++i) line3d({i * sq, 0, 0}, {i * sq, bs.height, 0});
+      for (int j = 0; j <= ny; ++j) line3d({0, j * sq, 0}, {bs.width, j * sq, 0});
+    }
+  }
+  for (const auto& p : s.previous.image_points) cv::circle(image, cv::Point(cvRound(p.x), cvRound(p.y)), 3, corner_col, 1, cv::LINE_AA);
+  const double scale = std::max(0.5, s.size.width / 1280.0);
+  const std::string status = std::string(engine_state_name(s.state)) + "  keyframes " + std::to_string(s.keyframes.size()) +
+                             (s.last.target_parameter.empty() ? "" : "  target " + s.last.target_parameter) +
+                             (s.last.jaccard >= 0 ? "  J " + std::to_string(s.last.jaccard).substr(0, 4) : "");
+  cv::putText(image, status, cv::Point(10, static_cast<int>(30 * scale)), cv::FONT_HERSHEY_SIMPLEX, 0.7 * scale, text_col, 2, cv::LINE_AA);
+  cv::putText(image, s.last.guidance, cv::Point(10, static_cast<int>(62 * scale)), cv::FONT_HERSHEY_SIMPLEX, 0.8 * scale, text_col, 2, cv::LINE_AA);
+}
+
+}  // namespace posecal

@@ -1,0 +1,427 @@
+// posecal_session_*: one camera feeding one pose-selection engine, behind the C ABI.
+#include <chrono>
+#include <ctime>
+#include <memory>
+#include <opencv2/imgproc.hpp>
+
+#include "abi_common.hpp"
+#include "context.hpp"
+#include "json_report.hpp"
+#include "posecal.h"
+#include "posecal/session.hpp"
+#include "posecal/simulation.hpp"
+
+using namespace posecal;
+using posecal::abi::guarded;
+using posecal::abi::require;
+using Json = nlohmann::json;
+
+struct posecal_session {
+  std::unique_ptr<CalibrationSession> session;
+  DeviceInfo camera;
+  bool external = false;
+  bool in_callback = false;
+  posecal_event_fn fn = nullptr;
+  void* user_data = nullptr;
+  std::string started, finished;
+  // sim:// only: the fixed test set, rendered once, and the evaluation of the last result.
+  std::vector<Observation> test_set;
+  int evaluated_keyframes = -1;
+  SimEvaluation evaluation;
+};
+
+namespace {
+
+std::string utc_now() {
+  char buf[32];
+  const std::time_t t = std::time(nullptr);
+  std::tm tm{};
+  gmtime_r(&t, &tm);
+  std::strftime(buf, sizeof buf, "%Y-%m-%dT%H:%M:%SZ", &tm);
+  return buf;
+}
+
+Json number(double v) { return std::isfinite(v) ? Json(v) : Json(nullptr); }
+
+void check_not_in_callback(const posecal_session* s, const char* call) {
+  if (s->in_callback) {
+    throw Error(ErrorCode::kState, std::string(call) + " may not be called from the session's event callback");
+  }
+}
+
+Json event_json(const SessionEvent& e, std::string* kind) {
+  Json j;
+  if (e.kind == SessionEvent::Kind::kEngine && e.engine) {
+    const EngineEvent& ev = *e.engine;
+    *kind = engine_event_name(ev.kind);
+    j["keyframes"] = ev.keyframes;
+    if (ev.kind == EngineEvent::Kind::kStateChanged) {
+      j["from"] = engine_state_name(ev.from);
+      j["to"] = engine_state_name(ev.to);
+    }
+    if (!ev.parameter.empty()) j["parameter"] = ev.parameter;
+    j["message"] = ev.message;
+  } else {
+    *kind = e.kind == SessionEvent::Kind::kCameraDisconnected ? "camera_disconnected"
+            : e.kind == SessionEvent::Kind::kCameraReconnected ? "camera_reconnected"
+                                                                : "error";
+    j["message"] = e.message;
+  }
+  return j;
+}
+
+EngineOptions engine_options(const Json& c, bool* lock_settings) {
+  EngineOptions o;
+  if (c.contains("target")) o.target = TargetSpec::parse(c.at("target").get<std::string>());
+  if (c.contains("operator")) {
+    const std::string op = c.at("operator").get<std::string>();
+    if (op != "person" && op != "robot") {
+      throw Error(ErrorCode::kInvalidArgument, "session config: operator must be \"person\" or \"robot\"");
+    }
+    o.robot = op == "robot";
+  }
+  o.convergence_threshold = c.value("convergence_threshold", o.convergence_threshold);
+  o.max_keyframes = c.value("max_keyframes", o.max_keyframes);
+  o.jaccard_threshold = c.value("jaccard_threshold", o.jaccard_threshold);
+  o.still_motion_px = c.value("still_motion_px", o.still_motion_px);
+  o.constraint_factor = c.value("constraint_factor", o.constraint_factor);
+  o.target_timeout_frames = c.value("target_timeout_frames", o.target_timeout_frames);
+  o.pose_candidates = c.value("pose_candidates", o.pose_candidates);
+  o.posegen.max_tilt_deg = c.value("max_tilt_deg", o.posegen.max_tilt_deg);
+  *lock_settings = c.value("lock_settings", true);
+  std::string why;
+  if (!o.is_valid(&why)) throw Error(ErrorCode::kInvalidArgument, "session config: " + why);
+  return o;
+}
+
+cv::Mat wrap_image(const posecal_image* img, bool* rgb) {
+  require(img, "image");
+  if (img->struct_size < sizeof(posecal_image)) {
+    throw Error(ErrorCode::kInvalidArgument, "image: struct_size " + std::to_string(img->struct_size) +
+                                                 " is smaller than sizeof(posecal_image) " +
+                                                 std::to_string(sizeof(posecal_image)));
+  }
+  require(img->data, "image->data");
+  if (img->width <= 0 || img->height <= 0 || img->width > 65535 || img->height > 65535) {
+    throw Error(ErrorCode::kInvalidArgument, "image: width and height must be in 1..65535");
+  }
+  int type = 0, channels = 0;
+  switch (img->format) {
+    case POSECAL_PIXEL_MONO8: type = CV_8UC1, channels = 1; break;
+    case POSECAL_PIXEL_BGR8: type = CV_8UC3, channels = 3; break;
+    case POSECAL_PIXEL_RGB8: type = CV_8UC3, channels = 3; break;
+    default: throw Error(ErrorCode::kInvalidArgument, "image: unknown pixel format " + std::to_string(img->format));
+  }
+  if (img->stride_bytes < img->width * channels) {
+    throw Error(ErrorCode::kInvalidArgument, "image: stride_bytes " + std::to_string(img->stride_bytes) +
+                                                 " is smaller than width x channels");
+  }
+  *rgb = img->format == POSECAL_PIXEL_RGB8;
+  return cv::Mat(img->height, img->width, type, img->data, static_cast<size_t>(img->stride_bytes));
+}
+
+void deliver(posecal_session* s, const SessionEvent& e) {
+  if (!s->fn) return;
+  std::string kind;
+  const Json payload = event_json(e, &kind);
+  const std::string text = payload.dump();
+  s->in_callback = true;
+  try {
+    s->fn(s->user_data, kind.c_str(), text.c_str());
+  } catch (...) {
+    // A C callback cannot throw; a C++ host's exception must not unwind through us.
+  }
+  s->in_callback = false;
+}
+
+Json status_json(posecal_session* s) {
+  Json j;
+  const CalibrationSession& cs = *s->session;
+  const CalibrationEngine* eng = cs.engine_ptr();
+  j["camera"] = abi::device_json(s->camera);
+  j["frames"] = cs.frames_processed();
+  j["camera_connected"] = !cs.disconnected();
+  if (!eng) {
+    j["state"] = "waiting_for_board";
+    j["converged"] = false;
+    j["keyframes"] = 0;
+    j["target_parameter"] = nullptr;
+    j["guidance"] = "waiting for the first frame";
+    j["jaccard"] = nullptr;
+    j["still"] = false;
+    j["board_visible"] = false;
+    j["corners"] = 0;
+    j["image_width"] = nullptr;
+    j["image_height"] = nullptr;
+    j["parameters"] = Json::object();
+    return j;
+  }
+  const FrameReport& r = eng->last_report();
+  j["state"] = engine_state_name(eng->state());
+  j["converged"] = eng->converged();
+  j["keyframes"] = eng->keyframes();
+  j["target_parameter"] = r.target_parameter.empty() ? Json(nullptr) : Json(r.target_parameter);
+  j["guidance"] = r.guidance;
+  j["jaccard"] = r.jaccard >= 0 ? Json(r.jaccard) : Json(nullptr);
+  j["still"] = r.still;
+  j["motion_px"] = r.motion_px >= 0 ? Json(r.motion_px) : Json(nullptr);
+  j["board_visible"] = r.board_visible;
+  j["corners"] = r.corners;
+  j["corners_required"] = r.corners_required;
+  j["pose_reached"] = r.pose_reached;
+  j["captured"] = r.captured;
+  j["image_width"] = eng->estimate().width();
+  j["image_height"] = eng->estimate().height();
+  if (eng->state() == EngineState::kFailed) j["failure"] = eng->failure_reason();
+  Json params = Json::object();
+  for (const auto& p : eng->parameters()) {
+    params[p.name] = {{"value", number(p.value)},
+                      {"std", p.std >= 0 ? number(p.std) : Json(nullptr)},
+                      {"converged", p.converged}};
+  }
+  j["parameters"] = params;
+  return j;
+}
+
+}  // namespace
+
+extern "C" {
+
+POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char* camera_uri,
+                                                const char* config_json, posecal_session** out) noexcept {
+  return guarded(__func__, [&] {
+    require(ctx, "ctx");
+    require(camera_uri, "camera_uri");
+    require(out, "out");
+    *out = nullptr;
+    const Json c = abi::parse_options(config_json,
+                                      {"target", "operator", "convergence_threshold", "max_keyframes",
+                                       "jaccard_threshold", "still_motion_px", "constraint_factor",
+                                       "target_timeout_frames", "pose_candidates", "lock_settings", "max_tilt_deg"},
+                                      "session config");
+    bool lock = true;
+    EngineOptions eo = engine_options(c, &lock);
+    const Uri uri = Uri::parse(camera_uri);
+    auto s = std::make_unique<posecal_session>();
+    std::unique_ptr<Camera> camera;
+    if (uri.scheme == "sim") {
+      // The simulated board must be the session's target, so the camera is built here.
+      SimCameraOptions so = sim_options_from_uri(uri, eo.target);
+      const bool uri_robot = uri.query.count("operator") && uri.query.at("operator") == "robot";
+      if (c.contains("operator") && uri.query.count("operator") && uri_robot != eo.robot) {
+        throw Error(ErrorCode::kInvalidArgument, "session config operator contradicts the sim:// URI's operator");
+      }
+      eo.robot = eo.robot || uri_robot;
+      so.op.kind = eo.robot ? OperatorKind::kRobot : OperatorKind::kPerson;
+      if (!c.contains("target_timeout_frames")) {
+        // The simulated person gives up after max_tries attempts; then move on.
+        eo.target_timeout_frames = (so.op.move_frames + so.op.hold_frames) * so.op.max_tries + 1;
+      }
+      camera = make_sim_camera(so);
+    } else {
+      camera = ctx->manager().open(camera_uri);
+    }
+    s->external = uri.scheme == "external";
+    s->camera = camera->info();
+    s->session = std::make_unique<CalibrationSession>(std::move(camera), eo, lock);
+    posecal_session* raw = s.get();
+    s->session->set_event_callback([raw](const SessionEvent& e) { deliver(raw, e); });
+    s->started = utc_now();
+    *out = s.release();
+    return POSECAL_OK;
+  });
+}
+
+POSECAL_API void posecal_session_close(posecal_session* session) noexcept {
+  guarded(__func__, [&] {
+    if (session && session->in_callback) {
+      throw Error(ErrorCode::kState, "posecal_session_close called from the session's event callback (ignored)");
+    }
+    delete session;
+    return POSECAL_OK;
+  });
+}
+
+POSECAL_API posecal_status posecal_session_step(posecal_session* session, int timeout_ms) noexcept {
+  return guarded(__func__, [&] {
+    require(session, "session");
+    check_not_in_callback(session, "posecal_session_step");
+    if (session->external) {
+      throw Error(ErrorCode::kState, "session on 'external' has no camera to step: use posecal_session_feed");
+    }
+    if (timeout_ms < 0 || timeout_ms > 600000) {
+      throw Error(ErrorCode::kInvalidArgument, "timeout_ms must be in [0, 600000]");
+    }
+    if (session->session->finished()) throw Error(ErrorCode::kState, "the calibration has finished");
+    const StepStatus st = session->session->step(timeout_ms);
+    if (session->session->finished() && session->finished.empty()) session->finished = utc_now();
+    switch (st) {
+      case StepStatus::kFrame: return POSECAL_OK;
+      case StepStatus::kTimeout:
+        throw Error(ErrorCode::kTimeout, "no frame from '" + session->camera.uri + "' within " +
+                                             std::to_string(timeout_ms) + " ms");
+      case StepStatus::kDisconnected:
+        throw Error(ErrorCode::kDevice, "camera '" + session->camera.uri + "' is disconnected (keyframes kept)");
+      case StepStatus::kEndOfStream:
+        throw Error(ErrorCode::kNotFound, "camera '" + session->camera.uri + "' has no more frames");
+      case StepStatus::kFinished: throw Error(ErrorCode::kState, "the calibration has finished");
+    }
+    return POSECAL_E_INTERNAL;
+  });
+}
+
+POSECAL_API posecal_status posecal_session_feed(posecal_session* session, const posecal_image* image) noexcept {
+  return guarded(__func__, [&] {
+    require(session, "session");
+    check_not_in_callback(session, "posecal_session_feed");
+    bool rgb = false;
+    const cv::Mat m = wrap_image(image, &rgb);
+    cv::Mat frame;
+    if (rgb) {
+      cv::cvtColor(m, frame, cv::COLOR_RGB2BGR);
+    } else {
+      frame = m;
+    }
+    if (session->session->finished()) throw Error(ErrorCode::kState, "the calibration has finished");
+    session->session->feed(frame);
+    if (session->session->finished() && session->finished.empty()) session->finished = utc_now();
+    return POSECAL_OK;
+  });
+}
+
+POSECAL_API posecal_status posecal_session_status(posecal_session* session, char* buf, size_t* size) noexcept {
+  return guarded(__func__, [&] {
+    require(session, "session");
+    require(size, "size");
+    return abi::copy_out(status_json(session).dump(), buf, size);
+  });
+}
+
+POSECAL_API posecal_status posecal_session_target_pose(posecal_session* session, double rvec[3],
+                                                       double tvec[3]) noexcept {
+  return guarded(__func__, [&] {
+    require(session, "session");
+    require(rvec, "rvec");
+    require(tvec, "tvec");
+    const CalibrationEngine* eng = session->session->engine_ptr();
+    if (!eng || !eng->target()) {
+      throw Error(ErrorCode::kState, eng ? std::string("no target while ") + engine_state_name(eng->state())
+                                         : "no target before the first frame");
+    }
+    const Pose& p = eng->target()->T_cam_board;
+    for (int i = 0; i < 3; ++i) {
+      rvec[i] = p.r[i];
+      tvec[i] = p.t[i];
+    }
+    return POSECAL_OK;
+  });
+}
+
+POSECAL_API posecal_status posecal_session_pose_reached(posecal_session* session) noexcept {
+  return guarded(__func__, [&] {
+    require(session, "session");
+    if (!session->session->options().robot) {
+      throw Error(ErrorCode::kState, "pose_reached is for sessions opened with \"operator\": \"robot\"");
+    }
+    session->session->engine().report_pose_reached();
+    return POSECAL_OK;
+  });
+}
+
+POSECAL_API posecal_status posecal_session_render_overlay(posecal_session* session, posecal_image* inout) noexcept {
+  return guarded(__func__, [&] {
+    require(session, "session");
+    bool rgb = false;
+    cv::Mat m = wrap_image(inout, &rgb);
+    const CalibrationEngine& eng = session->session->engine();
+    if (rgb) {
+      cv::Mat bgr;
+      cv::cvtColor(m, bgr, cv::COLOR_RGB2BGR);
+      eng.draw_overlay(bgr);
+      cv::cvtColor(bgr, m, cv::COLOR_BGR2RGB);
+    } else {
+      eng.draw_overlay(m);
+    }
+    return POSECAL_OK;
+  });
+}
+
+namespace {
+
+const CalibrationResult& require_result(posecal_session* s) {
+  const CalibrationEngine* eng = s->session->engine_ptr();
+  if (!eng || !eng->result()) {
+    throw Error(ErrorCode::kState, "no calibration yet: it needs two keyframes (" +
+                                       std::to_string(eng ? eng->keyframes() : 0) + " captured)");
+  }
+  return *eng->result();
+}
+
+}  // namespace
+
+POSECAL_API posecal_status posecal_session_result(posecal_session* session, char* buf, size_t* size) noexcept {
+  return guarded(__func__, [&] {
+    require(session, "session");
+    require(size, "size");
+    const CalibrationResult& r = require_result(session);
+    CalibrationEngine& eng = session->session->engine();
+    Json j = abi::calibration_json(r);
+    j["state"] = engine_state_name(eng.state());
+    j["converged"] = eng.converged();
+    if (eng.state() == EngineState::kFailed) j["failure"] = eng.failure_reason();
+    j["keyframes"] = eng.keyframes();
+    j["frames_processed"] = session->session->frames_processed();
+    j["target"] = eng.options().target.to_string();
+    j["camera"] = abi::device_json(session->camera);
+    j["locked_settings"] = session->session->locked_settings();
+    j["started"] = session->started;
+    j["finished"] = session->finished.empty() ? Json(nullptr) : Json(session->finished);
+    Json conv = Json::object();
+    for (const auto& p : eng.parameters()) conv[p.name] = p.converged;
+    j["parameter_converged"] = conv;
+    if (SimCamera* sim = as_sim_camera(&session->session->camera())) {
+      if (session->test_set.empty()) session->test_set = render_test_set(sim->synthetic());
+      if (session->evaluated_keyframes != eng.keyframes()) {
+        session->evaluation = evaluate_synthetic(r.model, sim->truth(), session->test_set);
+        session->evaluated_keyframes = eng.keyframes();
+      }
+      j["eps_test"] = number(session->evaluation.eps_test);
+      j["eps_gt"] = number(session->evaluation.eps_gt);
+      j["test_frames"] = session->evaluation.test_frames;
+      Json truth;
+      for (int i = 0; i < sim->truth().num_params(); ++i) truth[sim->truth().param_names()[i]] = sim->truth().params()[i];
+      j["ground_truth"] = truth;
+      Json att = Json::object();
+      for (const auto& [kind, a] : sim->op().attempts()) att[kind] = {{"attempts", a.attempts}, {"reached", a.reached}};
+      j["operator_attempts"] = att;
+    }
+    return abi::copy_out(j.dump(), buf, size);
+  });
+}
+
+POSECAL_API posecal_status posecal_session_save(posecal_session* session, const char* path) noexcept {
+  return guarded(__func__, [&] {
+    require(session, "session");
+    require(path, "path");
+    const CalibrationResult& r = require_result(session);
+    const CalibrationEngine& eng = session->session->engine();
+    abi::save_calibration(path, r,
+                          {{"camera_uri", session->camera.uri},
+                           {"camera_id", session->camera.id},
+                           {"target", eng.options().target.to_string()},
+                           {"converged", eng.converged() ? "true" : "false"}});
+    return POSECAL_OK;
+  });
+}
+
+POSECAL_API posecal_status posecal_session_set_callback(posecal_session* session, posecal_event_fn fn,
+                                                        void* user_data) noexcept {
+  return guarded(__func__, [&] {
+    require(session, "session");
+    session->fn = fn;
+    session->user_data = user_data;
+    return POSECAL_OK;
+  });
+}
+
+}  // extern "C"
