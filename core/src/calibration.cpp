@@ -2,12 +2,15 @@
 
 #include <ceres/ceres.h>
 #include <ceres/rotation.h>
+#include <glog/logging.h>
 
 #include <Eigen/Dense>
 #include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <opencv2/calib3d.hpp>
+#include <cstdlib>
+#include <mutex>
 #include <set>
 
 #include "posecal/error.hpp"
@@ -179,8 +182,26 @@ bool estimate_pose(const CameraModel& model, const Observation& frame, Pose* T_c
   return true;
 }
 
+namespace {
+
+// Ceres logs a warning through glog whenever Levenberg-Marquardt rejects a step (normal for the
+// degenerate single views the bootstrap tries). posecal runs inside other people's processes and
+// must not write to their stderr: raise glog's threshold to ERROR once, unless
+// POSECAL_CERES_LOG is set (a host that uses glog itself can also set FLAGS_minloglevel back).
+void quiet_ceres_logging() {
+  static std::once_flag once;
+  std::call_once(once, [] {
+    if (std::getenv("POSECAL_CERES_LOG") == nullptr && FLAGS_minloglevel < google::GLOG_ERROR) {
+      FLAGS_minloglevel = google::GLOG_ERROR;
+    }
+  });
+}
+
+}  // namespace
+
 CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size image_size,
                             const CalibrationOptions& options, const WarmStart* warm_start) {
+  quiet_ceres_logging();
   const auto t0 = std::chrono::steady_clock::now();
   std::string why;
   if (!options.is_valid(&why))

@@ -2,6 +2,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
+#include <limits>
 #include <map>
 #include <opencv2/imgproc.hpp>
 
@@ -62,6 +64,31 @@ bool EngineOptions::is_valid(std::string* error) const {
   if (!posegen.is_valid(&why)) return fail("posegen: " + why);
   if (!calibration.is_valid(&why)) return fail("calibration: " + why);
   return true;
+}
+
+std::vector<int> ratio_test(const std::vector<double>& var_before, const std::vector<double>& var_after,
+                            int targeted, const std::vector<bool>& converged, const int group_keyframes[2],
+                            double threshold, EngineOptions::ConvergenceMeasure measure) {
+  const size_t n = var_before.size();
+  if (var_after.size() != n || converged.size() != n || targeted < 0 || targeted >= static_cast<int>(n)) {
+    throw Error(ErrorCode::kInvalidArgument, "ratio_test: inconsistent sizes");
+  }
+  std::vector<int> out;
+  const ParamGroup g = param_group(targeted);
+  for (size_t i = 0; i < n; ++i) {
+    if (converged[i] || param_group(static_cast<int>(i)) != g) continue;  // only the targeted group
+    const double v0 = var_before[i], v1 = var_after[i];
+    if (!(v0 > 0) || !std::isfinite(v1)) continue;
+    const double red = measure == EngineOptions::ConvergenceMeasure::kStd ? 1.0 - std::sqrt(std::max(0.0, v1) / v0)
+                                                                          : 1.0 - v1 / v0;
+    // Deviation from the reference implementation: the comparison must be between two
+    // keyframes of the group's own strategy, so the first keyframe of a group after
+    // initialisation cannot converge parameters it did not target (otherwise p1 and p2
+    // "converge" at the first distortion keyframe whatever it taught about them).
+    const bool evidence = static_cast<int>(i) == targeted || group_keyframes[static_cast<int>(g)] >= 2;
+    if (red >= 0 && red < threshold && evidence) out.push_back(static_cast<int>(i));
+  }
+  return out;
 }
 
 struct CalibrationEngine::Impl {
@@ -182,20 +209,67 @@ struct CalibrationEngine::Impl {
     return false;
   }
 
+  // Relative reduction as the ratio test measures it.
+  double reduction(double var_before, double var_after) const {
+    if (!(var_before > 0)) return 0.0;
+    return opt.convergence_measure == EngineOptions::ConvergenceMeasure::kStd
+               ? 1.0 - std::sqrt(std::max(0.0, var_after) / var_before)
+               : 1.0 - var_after / var_before;
+  }
+
+  void mark_converged(int i, const std::string& why) {
+    param_converged[i] = true;
+    EngineEvent e{EngineEvent::Kind::kParameterConverged};
+    e.parameter = estimate.param_names()[i];
+    e.message = why;
+    emit(e);
+  }
+
+  static std::string percent(double v) {
+    char buf[32];
+    std::snprintf(buf, sizeof buf, "%.1f%%", v * 100.0);
+    return buf;
+  }
+
   void choose_refinement_target() {
-    // MaxIOD (paper §4.1): the parameter with the highest index of dispersion among those not
-    // converged.
-    int best = -1;
-    double best_iod = -1;
-    for (int i = 0; i < estimate.num_params(); ++i) {
-      if (param_converged[i] || result->fixed[i]) continue;
-      if (result->index_of_dispersion[i] > best_iod) {
-        best_iod = result->index_of_dispersion[i];
-        best = i;
+    while (true) {
+      // MaxIOD (paper §4.1): the parameter with the highest index of dispersion among those not
+      // converged.
+      int best = -1;
+      double best_iod = -1;
+      for (int i = 0; i < estimate.num_params(); ++i) {
+        if (param_converged[i] || result->fixed[i]) continue;
+        if (result->index_of_dispersion[i] > best_iod) {
+          best_iod = result->index_of_dispersion[i];
+          best = i;
+        }
       }
+      if (best < 0) return;
+      std::vector<TargetPose> cands = posegen.candidates(best, estimate, opt.pose_candidates);
+      if (cands.empty()) throw Error(ErrorCode::kInternal, "pose generation produced no candidate");
+      size_t pick = 0;
+      double pick_var = std::numeric_limits<double>::infinity();
+      if (opt.pose_candidates > 1 || opt.prospective_convergence) {
+        information = intrinsics_information(*result);
+        for (size_t i = 0; i < cands.size(); ++i) {
+          const double v = predicted_variance(best, cands[i]);
+          if (v < pick_var) pick_var = v, pick = i;
+        }
+      }
+      if (opt.prospective_convergence) {
+        const double now = result->std_unit[best] * result->std_unit[best];
+        const double red = reduction(now, pick_var);
+        if (red < opt.convergence_threshold) {
+          mark_converged(best, "best pose would reduce its variance by only " + percent(red) +
+                                   ": converged without capturing it");
+          if (std::all_of(param_converged.begin(), param_converged.end(), [](bool b) { return b; })) return;
+          continue;
+        }
+      }
+      posegen.commit(cands[pick]);
+      set_target(cands[pick], best);
+      return;
     }
-    if (best < 0) return;
-    set_target(next_pose(best), best);
   }
 
   // Predicted variance of parameter `param` after capturing `t` (Sigma_p = I).
@@ -210,6 +284,7 @@ struct CalibrationEngine::Impl {
     return cov(it - free_idx.begin(), it - free_idx.begin());
   }
 
+  // A new target for the same parameter (skipped or timed-out target).
   TargetPose next_pose(int param) {
     if (opt.pose_candidates <= 1 || !result) return posegen.next_pose(param, estimate);
     information = intrinsics_information(*result);
@@ -220,24 +295,15 @@ struct CalibrationEngine::Impl {
   // Ratio test (paper §4.1) on the parameters of the targeted parameter's group.
   void update_convergence(const CalibrationResult& prev, const CalibrationResult& now, int tgt) {
     if (tgt < 0) return;
-    const ParamGroup g = param_group(tgt);
+    std::vector<double> v0, v1;
+    std::vector<bool> skip = param_converged;
     for (int i = 0; i < estimate.num_params(); ++i) {
-      if (param_converged[i] || param_group(i) != g || now.fixed[i]) continue;
-      const double v0 = prev.std_unit[i] * prev.std_unit[i], v1 = now.std_unit[i] * now.std_unit[i];
-      if (!(v0 > 0)) continue;
-      const double reduction = 1.0 - v1 / v0;
-      // Deviation from the reference implementation (docs/pose-selection.md): the comparison
-      // must be between two keyframes of the group's own strategy. The first keyframe of a
-      // group after initialisation cannot converge parameters it did not target; otherwise p1
-      // and p2 "converge" at the first distortion keyframe whatever it taught about them.
-      const bool evidence = i == tgt || group_keyframes[static_cast<int>(g)] >= 2;
-      if (reduction >= 0 && reduction < opt.convergence_threshold && evidence) {
-        param_converged[i] = true;
-        EngineEvent e{EngineEvent::Kind::kParameterConverged};
-        e.parameter = estimate.param_names()[i];
-        e.message = "variance reduced by " + std::to_string(reduction * 100.0) + "%";
-        emit(e);
-      }
+      v0.push_back(prev.std_unit[i] * prev.std_unit[i]);
+      v1.push_back(now.std_unit[i] * now.std_unit[i]);
+      if (now.fixed[i]) skip[i] = true;
+    }
+    for (int i : ratio_test(v0, v1, tgt, skip, group_keyframes, opt.convergence_threshold, opt.convergence_measure)) {
+      mark_converged(i, "variance reduced by only " + percent(reduction(v0[i], v1[i])) + " by the last keyframe");
     }
   }
 
@@ -287,7 +353,14 @@ struct CalibrationEngine::Impl {
     for (int i = 0; i < estimate.num_params(); ++i)
       if (now.fixed[i]) param_converged[i] = true;  // nothing to refine
 
-    if (std::all_of(param_converged.begin(), param_converged.end(), [](bool b) { return b; })) {
+    auto all_converged = [&] {
+      return std::all_of(param_converged.begin(), param_converged.end(), [](bool b) { return b; });
+    };
+    if (!all_converged() && static_cast<int>(keyframes.size()) < opt.max_keyframes) {
+      set_state(EngineState::kRefining);
+      choose_refinement_target();  // may converge parameters prospectively
+    }
+    if (all_converged()) {
       target.reset();
       target_param = -1;
       set_state(EngineState::kConverged, "every parameter converged");
@@ -295,10 +368,7 @@ struct CalibrationEngine::Impl {
     }
     if (static_cast<int>(keyframes.size()) >= opt.max_keyframes) {
       fail("keyframe cap (" + std::to_string(opt.max_keyframes) + ") reached before convergence");
-      return;
     }
-    set_state(EngineState::kRefining);
-    choose_refinement_target();
   }
 
   std::string guidance_text(const FrameReport& r, const std::optional<Pose>& current) const {

@@ -56,6 +56,8 @@ bool PoseGenOptions::is_valid(std::string* error) const {
   if (distortion_map_step_px < 1 || distortion_map_step_px > 100) return fail("distortion map step 1..100");
   if (!(border_margin_fraction >= 0 && border_margin_fraction < 0.2)) return fail("border margin in [0, 0.2)");
   if (!(fullscreen_fill > 0.3 && fullscreen_fill <= 1)) return fail("fullscreen_fill must be in (0.3, 1]");
+  if (!(pinhole_fill > 0.1 && pinhole_fill <= 1)) return fail("pinhole_fill must be in (0.1, 1]");
+  if (!(std::abs(distortion_tilt_deg) < 80)) return fail("distortion_tilt_deg must be in (-80, 80)");
   return true;
 }
 
@@ -112,8 +114,8 @@ TargetPose PoseGenerator::pinhole_pose(int axis, double tilt_deg, double shift_p
                             Eigen::AngleAxisd(rad(tilt_deg), tilt_axis).toRotationMatrix();
   // Step 1: distance such that the whole board is visible; nominally the untilted board covers
   // 60% of the limiting image dimension, moved back if the tilted board would leave the view.
-  const double d_nominal = std::max(estimate.fx() * bs.width / (0.6 * size_.width),
-                                    estimate.fy() * bs.height / (0.6 * size_.height));
+  const double d_nominal = std::max(estimate.fx() * bs.width / (options_.pinhole_fill * size_.width),
+                                    estimate.fy() * bs.height / (options_.pinhole_fill * size_.height));
   // Step 4: shift the board's centre along the image axis (cx: x, cy: y).
   Eigen::Vector2d px(estimate.cx(), estimate.cy());
   px[axis == 0 ? 1 : 0] += shift_px;
@@ -240,6 +242,18 @@ TargetPose PoseGenerator::distortion_pose_for(const CameraModel& estimate, const
     }
   }
   if (!placed) keep_in_view(estimate, &pose, &out.note);
+  if (options_.distortion_tilt_deg != 0.0) {
+    // Tilt about the board's centre, about the axis perpendicular to the direction from the
+    // image centre, so the pose also carries perspective (pinhole) information.
+    const Eigen::Vector3d c = pose.apply(Eigen::Vector3d(bs.width / 2, bs.height / 2, 0));
+    Eigen::Vector3d radial(c.x() / c.z(), c.y() / c.z(), 0.0);
+    if (radial.norm() < 1e-6) radial = Eigen::Vector3d::UnitX();
+    const Eigen::Vector3d axis = Eigen::Vector3d::UnitZ().cross(radial.normalized());
+    const Eigen::Matrix3d Rt = Eigen::AngleAxisd(options_.distortion_tilt_deg * kPi / 180.0, axis).toRotationMatrix();
+    const Eigen::Matrix3d Rn = Rt * pose.R();
+    pose = Pose::from_rotation(Rn, c - Rn * Eigen::Vector3d(bs.width / 2, bs.height / 2, 0));
+    keep_in_view(estimate, &pose, &out.note);
+  }
   out.T_cam_board = pose;
   // The cells this visit masks (paper §3.3, step 3): the region plus the board's footprint,
   // grown by the border margin (the strip between the board and the image border belongs to

@@ -5,6 +5,7 @@
 #include "posecal/error.hpp"
 #include "posecal/simulation.hpp"
 #include "posecal/sources.hpp"
+#include "posecal/v4l2_backend.hpp"
 
 using posecal::Error;
 using posecal::ErrorCode;
@@ -13,7 +14,7 @@ namespace {
 
 // Backends this build knows, in listing order.
 const std::vector<std::string>& known_backends() {
-  static const std::vector<std::string> names = {"sim", "images", "external"};
+  static const std::vector<std::string> names = {"sim", "images", "external", "v4l2"};
   return names;
 }
 
@@ -21,6 +22,7 @@ std::shared_ptr<posecal::CameraBackend> make_backend(const std::string& name) {
   if (name == "sim") return posecal::make_sim_backend();
   if (name == "images") return posecal::make_images_backend();
   if (name == "external") return posecal::make_external_backend();
+  if (name == "v4l2") return posecal::make_v4l2_backend();
   throw Error(ErrorCode::kInternal, "no factory for backend '" + name + "'");
 }
 

@@ -473,6 +473,7 @@ void UvcEmulator::add_node(const std::string& path, DeviceSpec spec,
     const uint32_t w = f.sizes.empty() ? 640 : f.sizes.front().width;
     const uint32_t h = f.sizes.empty() ? 480 : f.sizes.front().height;
     n->set_format(n->adjust(f.fourcc, w, h));
+    payload(n->fmt.pixelformat, n->fmt.width, n->fmt.height);
   }
   nodes_[path] = n;
 }
@@ -873,6 +874,9 @@ int UvcEmulator::do_ioctl(Lock& lock, int fd, File& f, unsigned long request, vo
         // vb2_is_busy(): buffers allocated, streaming, or a read() capture holding the queue.
         if (n.streaming || !n.buffers.empty() || n.reading) return EBUSY;
         n.set_format(p);
+        // Render the scene now, so that producing frames later costs no more than a copy (the
+        // first frame must not be late because of the emulator, e.g. under valgrind).
+        payload(p.pixelformat, p.width, p.height);
         ++n.state_changes;
       }
       fmt->fmt.pix = p;

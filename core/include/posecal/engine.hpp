@@ -53,7 +53,14 @@ struct EngineOptions {
   // Refinement targets: 1 = the paper's rule (next sequence element / most distorted region);
   // n > 1 = the best of the first n rule-generated candidates by predicted variance of the
   // targeted parameter (docs/pose-selection.md).
-  int pose_candidates = 1;
+  int pose_candidates = 6;
+  // Ratio test measure: kVariance = 1 - sigma'^2 / sigma^2 (paper §4.1); kStd = 1 - sigma' /
+  // sigma (the reference implementation; at 10% it equals a 19% variance reduction).
+  enum class ConvergenceMeasure { kVariance, kStd } convergence_measure = ConvergenceMeasure::kVariance;
+  // Before capturing a pose for a parameter, predict the ratio test: if even the best pose the
+  // rules generate for it would reduce its variance by less than the threshold, the parameter
+  // converges without that keyframe (docs/pose-selection.md).
+  bool prospective_convergence = true;
   PoseGenOptions posegen;
   CalibrationOptions calibration;
   DetectorOptions detector;
@@ -107,6 +114,15 @@ struct ParameterStatus {
   bool converged = false;
   int targeted = 0;      // keyframes captured for this parameter
 };
+
+// The ratio test (paper §4.1) after a keyframe captured for parameter `targeted`: returns the
+// parameters of the targeted parameter's group that converge, given each parameter's variance
+// before and after the keyframe. `group_keyframes` counts the refinement keyframes captured per
+// group (pinhole, distortion) including this one: a parameter other than the target converges
+// only once its group has had two keyframes of its own strategy (docs/pose-selection.md).
+std::vector<int> ratio_test(const std::vector<double>& var_before, const std::vector<double>& var_after,
+                            int targeted, const std::vector<bool>& converged, const int group_keyframes[2],
+                            double threshold, EngineOptions::ConvergenceMeasure measure);
 
 class CalibrationEngine {
  public:

@@ -34,6 +34,13 @@ struct PoseGenOptions {
   // operator places a little off target fully visible (docs/pose-selection.md).
   double border_margin_fraction = 0.02;
   double fullscreen_fill = 0.95;   // second initial pose: fraction of the limiting image axis
+  // C_K poses: the untilted board's size, fraction of the limiting image axis (then moved back
+  // if the tilted board would leave the view). The reference implementation's fixed distance
+  // of 1.6 board widths gives about 0.53 on a C525.
+  double pinhole_fill = 0.8;
+  // C_Delta poses: tilt about the axis perpendicular to the direction from the image centre, in
+  // degrees (0 = parallel to the image plane, as in the paper).
+  double distortion_tilt_deg = 0.0;
   bool is_valid(std::string* error) const;
 };
 

@@ -1,0 +1,308 @@
+// The calibration engine: ratio test, every state transition, events, bad input.
+#include <gtest/gtest.h>
+
+#include "posecal/engine.hpp"
+#include "posecal/error.hpp"
+#include "posecal/session.hpp"
+#include "posecal/simulation.hpp"
+#include "posecal/views.hpp"
+
+using namespace posecal;
+using Measure = EngineOptions::ConvergenceMeasure;
+
+TEST(RatioTest, ConvergesTheTargetedGroupBelowTheThreshold) {
+  const std::vector<double> before(9, 1.0);
+  std::vector<double> after = {0.95, 0.5, 0.92, 0.7, 0.95, 0.95, 0.95, 0.95, 0.95};
+  const std::vector<bool> none(9, false);
+  const int groups_two[2] = {2, 2};
+  // Target fx: only pinhole parameters are tested; fx (5%) and cx (8%) fall below 10%.
+  auto c = ratio_test(before, after, 0, none, groups_two, 0.1, Measure::kVariance);
+  EXPECT_EQ(c, (std::vector<int>{0, 2}));
+  // Target k1: the distortion group.
+  c = ratio_test(before, after, 4, none, groups_two, 0.1, Measure::kVariance);
+  EXPECT_EQ(c, (std::vector<int>{4, 5, 6, 7, 8}));
+  // Already converged parameters are not reported again.
+  std::vector<bool> conv = none;
+  conv[2] = true;
+  EXPECT_EQ(ratio_test(before, after, 0, conv, groups_two, 0.1, Measure::kVariance), (std::vector<int>{0}));
+  // A variance that grew did not converge.
+  after[0] = 1.2;
+  EXPECT_TRUE(ratio_test(before, after, 0, conv, groups_two, 0.1, Measure::kVariance).empty());
+}
+
+TEST(RatioTest, FirstKeyframeOfAGroupConvergesOnlyItsTarget) {
+  const std::vector<double> before(9, 1.0), after(9, 0.95);
+  const std::vector<bool> none(9, false);
+  const int first[2] = {0, 1};  // the first distortion keyframe
+  EXPECT_EQ(ratio_test(before, after, 4, none, first, 0.1, Measure::kVariance), (std::vector<int>{4}));
+  const int second[2] = {0, 2};
+  EXPECT_EQ(ratio_test(before, after, 4, none, second, 0.1, Measure::kVariance).size(), 5u);
+}
+
+TEST(RatioTest, StdMeasureIsTheReferenceImplementations) {
+  const std::vector<double> before(9, 1.0);
+  std::vector<double> after(9, 1.0);
+  after[0] = 0.85;  // variance -15%, std -7.8%
+  const std::vector<bool> none(9, false);
+  const int g[2] = {2, 2};
+  EXPECT_TRUE(ratio_test(before, after, 0, none, g, 0.1, Measure::kVariance).empty() ||
+              ratio_test(before, after, 0, none, g, 0.1, Measure::kVariance)[0] != 0);
+  const auto s = ratio_test(before, after, 0, none, g, 0.1, Measure::kStd);
+  EXPECT_NE(std::find(s.begin(), s.end(), 0), s.end());
+}
+
+namespace {
+
+struct Rig {
+  CameraModel truth = c525_reference_model();
+  Target target;
+  SyntheticCamera camera;
+  std::vector<EngineEvent> events;
+  explicit Rig(RenderOptions ro = {}) : camera(truth, target, ro) {}
+  void listen(CalibrationEngine& e) {
+    e.set_event_callback([this](const EngineEvent& ev) { events.push_back(ev); });
+  }
+  std::vector<std::string> transitions() const {
+    std::vector<std::string> out;
+    for (const auto& e : events) {
+      if (e.kind == EngineEvent::Kind::kStateChanged) {
+        out.push_back(std::string(engine_state_name(e.from)) + ">" + engine_state_name(e.to));
+      }
+    }
+    return out;
+  }
+  int count(EngineEvent::Kind k) const {
+    return static_cast<int>(std::count_if(events.begin(), events.end(), [&](const EngineEvent& e) { return e.kind == k; }));
+  }
+};
+
+// Feeds frames of the board held still at `pose` until the engine captures (or gives up).
+bool hold_until_capture(CalibrationEngine& e, SyntheticCamera& cam, const Pose& pose, bool robot, int max_frames = 8) {
+  for (int i = 0; i < max_frames; ++i) {
+    // The robot stays at `pose` and says so (again after every target update).
+    if (robot && i >= 1 && e.target()) e.report_pose_reached();
+    if (e.process(cam.render(pose)).captured) return true;
+  }
+  return false;
+}
+
+}  // namespace
+
+TEST(Engine, WaitsForTheBoardThenBootstrapsThenFollowsInitialPoses) {
+  Rig rig;
+  EngineOptions o;
+  CalibrationEngine e(rig.truth.size(), o);
+  rig.listen(e);
+  // No board: waiting.
+  Pose away;
+  away.t = Eigen::Vector3d(0, 0, -1);
+  FrameReport r = e.process(rig.camera.render(away));
+  EXPECT_EQ(r.state, EngineState::kWaitingForBoard);
+  EXPECT_FALSE(r.board_visible);
+  EXPECT_FALSE(e.target());
+  // A fronto-parallel board: seen, but f is unobservable: bootstrapping.
+  const Pose fronto = board_pose_at(rig.target, Eigen::Vector3d(0, 0, 0.45), 0, 0, 0);
+  r = e.process(rig.camera.render(fronto));
+  EXPECT_EQ(r.state, EngineState::kBootstrapping);
+  EXPECT_TRUE(r.board_visible);
+  // A tilted board determines f: initial pose 1 with a target.
+  const Pose tilted = board_pose_at(rig.target, Eigen::Vector3d(0, 0, 0.5), 0.4, 30 * M_PI / 180, 0.2);
+  r = e.process(rig.camera.render(tilted));
+  EXPECT_EQ(r.state, EngineState::kInitialPose1);
+  ASSERT_TRUE(e.target());
+  EXPECT_EQ(e.target()->kind, "init-tilted");
+  EXPECT_NEAR(e.estimate().fx(), rig.truth.fx(), 0.05 * rig.truth.fx());
+  EXPECT_EQ(rig.transitions(), (std::vector<std::string>{"waiting_for_board>bootstrapping", "bootstrapping>initial_pose_1"}));
+}
+
+TEST(Engine, StillnessAndCornerCountGateTheCapture) {
+  Rig rig;
+  EngineOptions o;
+  o.robot = true;
+  CalibrationEngine e(rig.truth.size(), o);
+  // Robot mode gets a target at once; the bootstrap waits for the robot's report.
+  e.process(rig.camera.render(board_pose_at(rig.target, Eigen::Vector3d(0, 0, 0.5), 0, 0, 0)));
+  ASSERT_TRUE(e.target());
+  Pose target = e.target()->T_cam_board;
+  e.report_pose_reached();
+  // Moving board: not still, no capture.
+  Pose moving = target;
+  FrameReport r;
+  for (int i = 0; i < 3; ++i) {
+    moving.t.x() += 0.01;
+    r = e.process(rig.camera.render(moving));
+    EXPECT_FALSE(r.captured);
+  }
+  EXPECT_FALSE(r.still);
+  EXPECT_GT(r.motion_px, 1.5);
+  // Half the board out of view: too few corners (27 needed for the initial frames).
+  Pose out = target;
+  out.t.x() += 0.35;
+  for (int i = 0; i < 2; ++i) r = e.process(rig.camera.render(out));
+  EXPECT_LT(r.corners, 27);
+  EXPECT_EQ(r.corners_required, 27);
+  EXPECT_FALSE(r.captured);
+  // Held still at the target (the robot's bootstrap may update it once): captured.
+  for (int tries = 0; tries < 3 && e.keyframes() == 0; ++tries) {
+    hold_until_capture(e, rig.camera, e.target()->T_cam_board, true, 12);
+  }
+  EXPECT_EQ(e.state(), EngineState::kInitialPose2);
+  EXPECT_EQ(e.keyframes(), 1);
+}
+
+TEST(Engine, FullRunVisitsEveryStateAndEmitsEvents) {
+  RenderOptions ro;
+  ro.noise_sigma = 1.0;
+  Rig rig(ro);
+  EngineOptions o;
+  o.robot = true;
+  CalibrationEngine e(rig.truth.size(), o);
+  rig.listen(e);
+  e.process(rig.camera.render(board_pose_at(rig.target, Eigen::Vector3d(0, 0, 0.5), 0, 0, 0)));
+  int guard = 0;
+  while (e.state() != EngineState::kConverged && e.state() != EngineState::kFailed && guard++ < 40) {
+    ASSERT_TRUE(e.target());
+    hold_until_capture(e, rig.camera, e.target()->T_cam_board, true, 12);
+  }
+  EXPECT_EQ(e.state(), EngineState::kConverged) << e.failure_reason();
+  const auto t = rig.transitions();
+  ASSERT_GE(t.size(), 5u);
+  EXPECT_EQ(t[0], "waiting_for_board>bootstrapping");
+  EXPECT_EQ(t[1], "bootstrapping>initial_pose_1");
+  EXPECT_EQ(t[2], "initial_pose_1>initial_pose_2");
+  EXPECT_EQ(t[3], "initial_pose_2>refining");
+  EXPECT_EQ(t.back(), "refining>converged");
+  EXPECT_EQ(rig.count(EngineEvent::Kind::kCaptured), e.keyframes());
+  EXPECT_EQ(rig.count(EngineEvent::Kind::kParameterConverged), 9);
+  EXPECT_GE(rig.count(EngineEvent::Kind::kCalibrated), e.keyframes() - 1);
+  for (const auto& p : e.parameters()) EXPECT_TRUE(p.converged) << p.name;
+  EXPECT_FALSE(e.target());
+  EXPECT_TRUE(e.guidance_info().finished);
+  // The robot followed the literal targets with the true camera: accurate.
+  for (int i = 0; i < 9; ++i) {
+    EXPECT_NEAR(e.result()->model.params()[i], rig.truth.params()[i], 4 * e.result()->std_scaled[i] + 1e-9)
+        << rig.truth.param_names()[i];
+  }
+  // Finished: robots cannot report any more.
+  EXPECT_THROW(e.report_pose_reached(), Error);
+}
+
+TEST(Engine, KeyframeCapEndsAsFailedButKeepsTheResult) {
+  Rig rig;
+  EngineOptions o;
+  o.robot = true;
+  o.max_keyframes = 3;
+  CalibrationEngine e(rig.truth.size(), o);
+  rig.listen(e);
+  e.process(rig.camera.render(board_pose_at(rig.target, Eigen::Vector3d(0, 0, 0.5), 0, 0, 0)));
+  for (int k = 0; k < 6 && e.state() != EngineState::kFailed; ++k) {
+    ASSERT_TRUE(e.target());
+    hold_until_capture(e, rig.camera, e.target()->T_cam_board, true, 12);
+  }
+  EXPECT_EQ(e.state(), EngineState::kFailed);
+  EXPECT_EQ(e.keyframes(), 3);
+  EXPECT_NE(e.failure_reason().find("keyframe cap"), std::string::npos);
+  ASSERT_NE(e.result(), nullptr);
+  EXPECT_FALSE(e.converged());
+  EXPECT_EQ(rig.transitions().back(), "refining>failed");
+}
+
+TEST(Engine, DegenerateKeyframeIsRejectedAndTheTargetKept) {
+  Rig rig;
+  EngineOptions o;
+  o.robot = true;
+  CalibrationEngine e(rig.truth.size(), o);
+  rig.listen(e);
+  e.process(rig.camera.render(board_pose_at(rig.target, Eigen::Vector3d(0, 0, 0.5), 0, 0, 0)));
+  ASSERT_TRUE(e.target());
+  // Keyframe 1 at the first target (after the robot bootstrap settles the target).
+  Pose first;
+  for (int tries = 0; tries < 4 && e.keyframes() == 0; ++tries) {
+    first = e.target()->T_cam_board;
+    hold_until_capture(e, rig.camera, first, true, 12);
+  }
+  ASSERT_EQ(e.keyframes(), 1);
+  ASSERT_EQ(e.state(), EngineState::kInitialPose2);
+  const Eigen::Vector3d target_before = e.target()->T_cam_board.t;
+  // The robot reports the second target reached but shows the first view again: one view twice
+  // cannot determine the calibration, so the keyframe is dropped and the target stays.
+  const bool captured = hold_until_capture(e, rig.camera, first, true, 12);
+  EXPECT_TRUE(captured);
+  EXPECT_EQ(rig.count(EngineEvent::Kind::kKeyframeRejected), 1);
+  EXPECT_EQ(e.keyframes(), 1);
+  EXPECT_EQ(e.state(), EngineState::kInitialPose2);
+  EXPECT_EQ(e.target()->T_cam_board.t, target_before);
+  EXPECT_EQ(e.result(), nullptr);
+}
+
+TEST(Engine, CallsInTheWrongStateAreRejected) {
+  Rig rig;
+  CalibrationEngine e(rig.truth.size(), EngineOptions{});
+  EXPECT_THROW(e.report_pose_reached(), Error);  // no target yet
+  EXPECT_THROW(e.skip_target(), Error);          // not refining
+  try {
+    e.skip_target();
+  } catch (const Error& err) {
+    EXPECT_EQ(err.code(), ErrorCode::kState);
+  }
+  EXPECT_THROW(e.process(cv::Mat(100, 100, CV_8U, cv::Scalar(0))), Error);  // wrong size
+  EXPECT_THROW(e.process(cv::Mat(720, 1280, CV_32F, cv::Scalar(0))), Error);
+  EXPECT_THROW(e.process(cv::Mat()), Error);
+  cv::Mat bgr(720, 1280, CV_8UC3, cv::Scalar(0, 0, 0));
+  EXPECT_NO_THROW(e.process(bgr));
+  cv::Mat small(10, 10, CV_8U);
+  EXPECT_THROW(e.draw_overlay(small), Error);
+}
+
+TEST(Engine, OptionsValidate) {
+  EngineOptions o;
+  std::string why;
+  EXPECT_TRUE(o.is_valid(&why)) << why;
+  o.convergence_threshold = 0;
+  EXPECT_FALSE(o.is_valid(&why));
+  o = {};
+  o.max_keyframes = 2;
+  EXPECT_FALSE(o.is_valid(&why));
+  o = {};
+  o.jaccard_threshold = 1.5;
+  EXPECT_FALSE(o.is_valid(&why));
+  o = {};
+  o.pose_candidates = 0;
+  EXPECT_FALSE(o.is_valid(&why));
+  EXPECT_THROW(CalibrationEngine(cv::Size(1280, 720), o), Error);
+  EXPECT_THROW(CalibrationEngine(cv::Size(8, 8), EngineOptions{}), Error);
+}
+
+TEST(Engine, OverlayDrawsTheTarget) {
+  Rig rig;
+  EngineOptions o;
+  o.robot = true;
+  CalibrationEngine e(rig.truth.size(), o);
+  e.process(rig.camera.render(board_pose_at(rig.target, Eigen::Vector3d(0, 0, 0.5), 0, 0, 0)));
+  ASSERT_TRUE(e.target());
+  cv::Mat img(720, 1280, CV_8UC3, cv::Scalar(0, 0, 0));
+  e.draw_overlay(img);
+  // Pixels inside the projected target turned coloured; far outside stay black.
+  const auto outline = projected_outline(e.estimate(), rig.target, e.target()->T_cam_board, 4);
+  cv::Point2d c(0, 0);
+  for (const auto& p : outline) c += p;
+  c /= static_cast<double>(outline.size());
+  EXPECT_GT(cv::norm(img.at<cv::Vec3b>(cvRound(c.y), cvRound(c.x))), 0.0);
+  cv::Mat grey(720, 1280, CV_8U, cv::Scalar(0));
+  e.draw_overlay(grey);
+  EXPECT_GT(cv::countNonZero(grey), 1000);
+}
+
+TEST(Engine, PersonAndRobotSessionsConverge) {
+  for (const char* op : {"person", "robot"}) {
+    const Uri uri = Uri::parse(std::string("sim://?seed=11&operator=") + op);
+    SimCameraOptions so = sim_options_from_uri(uri, TargetSpec{});
+    EngineOptions eo;
+    eo.robot = std::string(op) == "robot";
+    eo.target_timeout_frames = 36;
+    CalibrationSession s(make_sim_camera(so), eo);
+    for (int f = 0; f < 1500 && !s.finished(); ++f) s.step(1000);
+    EXPECT_TRUE(s.engine().converged()) << op << ": " << s.engine().failure_reason();
+    EXPECT_LE(s.engine().keyframes(), 20);
+  }
+}
