@@ -21,16 +21,21 @@ bool AravisBackendOptions::is_valid(std::string* error) const {
     return fail("packet_size must be 0 (camera default) or 576..16384 bytes, not " +
                 std::to_string(packet_size));
   }
-  if (!in(socket_buffer_size, 0, 1 << 30)) return fail("socket_buffer_size must be 0 (auto) or a positive number of bytes");
-  if (!in(packet_timeout_us, 1000, 10000000)) return fail("packet_timeout_us must be 1000..10000000");
-  if (!in(frame_retention_us, 1000, 10000000)) return fail("frame_retention_us must be 1000..10000000");
+  if (!in(socket_buffer_size, 0, 1 << 30))
+    return fail("socket_buffer_size must be 0 (auto) or a positive number of bytes");
+  if (!in(packet_timeout_us, 1000, 10000000))
+    return fail("packet_timeout_us must be 1000..10000000");
+  if (!in(frame_retention_us, 1000, 10000000))
+    return fail("frame_retention_us must be 1000..10000000");
   if (!in(extra_buffers, 1, 64)) return fail("extra_buffers must be 1..64");
   if (!in(max_lent_buffers, 0, 64)) return fail("max_lent_buffers must be 0..64");
   if (!in(frame_timeout_ms, 50, 60000)) return fail("frame_timeout_ms must be 50..60000");
-  if (!in(idle_probe_interval_ms, 100, 60000)) return fail("idle_probe_interval_ms must be 100..60000");
+  if (!in(idle_probe_interval_ms, 100, 60000))
+    return fail("idle_probe_interval_ms must be 100..60000");
   if (!in(probe_timeout_ms, 10, 5000)) return fail("probe_timeout_ms must be 10..5000");
   if (!in(probe_retries, 1, 10)) return fail("probe_retries must be 1..10");
-  if (!in(reconnect_min_backoff_ms, 10, 60000)) return fail("reconnect_min_backoff_ms must be 10..60000");
+  if (!in(reconnect_min_backoff_ms, 10, 60000))
+    return fail("reconnect_min_backoff_ms must be 10..60000");
   if (!in(reconnect_max_backoff_ms, reconnect_min_backoff_ms, 600000)) {
     return fail("reconnect_max_backoff_ms must be reconnect_min_backoff_ms..600000");
   }
@@ -95,15 +100,23 @@ AravisBackendOptions options_for(AravisBackendOptions o, const Uri& uri) {
       as_int(&o.probe_timeout_ms);
     } else if (key == "probe_retries") {
       as_int(&o.probe_retries);
+    } else if (key == "idle_probe_interval_ms") {
+      as_int(&o.idle_probe_interval_ms);
     } else if (key == "auto_reconnect") {
       as_bool(&o.auto_reconnect);
+    } else if (key == "reconnect_min_backoff_ms") {
+      as_int(&o.reconnect_min_backoff_ms);
+    } else if (key == "reconnect_max_backoff_ms") {
+      as_int(&o.reconnect_max_backoff_ms);
     } else {
       throw Error(ErrorCode::kInvalidArgument,
                   where + ": unknown option '" + key +
                       "' (known: packet_size, packet_resend, socket_buffer_size, "
-                      "packet_timeout_us, frame_retention_us, packet_socket, extra_buffers, max_lent_buffers, "
-                      "zero_copy, frame_timeout_ms, probe_timeout_ms, probe_retries, "
-                      "auto_reconnect)");
+                      "packet_timeout_us, frame_retention_us, packet_socket, extra_buffers, "
+                      "max_lent_buffers, "
+                      "zero_copy, frame_timeout_ms, idle_probe_interval_ms, probe_timeout_ms, "
+                      "probe_retries, auto_reconnect, reconnect_min_backoff_ms, "
+                      "reconnect_max_backoff_ms)");
     }
   }
   std::string why;
@@ -182,8 +195,8 @@ std::unique_ptr<Camera> AravisBackend::open(const Uri& uri) {
     // Straight to the address (no discovery, so routed subnets work too); the probe keeps a
     // missing camera from costing Aravis' 2.5 s connection timeout.
     if (!gvcp_probe(path, options.probe_timeout_ms, options.probe_retries)) {
-      throw Error(ErrorCode::kNotFound, "camera '" + uri.text +
-                                            "' not found: no GigE Vision camera answers at " + path);
+      throw Error(ErrorCode::kNotFound,
+                  "camera '" + uri.text + "' not found: no GigE Vision camera answers at " + path);
     }
     info.uri = "aravis://" + path;
     locator.gige = true;
@@ -199,7 +212,8 @@ std::unique_ptr<Camera> AravisBackend::open(const Uri& uri) {
     if (found == nullptr) {
       std::vector<const ListedDevice*> matches;
       for (const ListedDevice& d : devices) {
-        if (d.serial == path || (!d.physical_id.empty() && d.physical_id == path)) matches.push_back(&d);
+        if (d.serial == path || (!d.physical_id.empty() && d.physical_id == path))
+          matches.push_back(&d);
       }
       if (matches.size() > 1) {
         std::string ids;

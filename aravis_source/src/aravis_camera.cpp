@@ -43,11 +43,11 @@ std::string join(const std::vector<std::string>& items) {
 // Features that change the size or layout of the payload: the stream's buffers were sized for
 // the old one, so these are refused while streaming.
 bool changes_payload(const std::string& name) {
-  static const char* const kNames[] = {"PixelFormat",       "Width",
-                                       "Height",            "BinningHorizontal",
-                                       "BinningVertical",   "DecimationHorizontal",
-                                       "DecimationVertical", "ChunkModeActive",
-                                       "ChunkEnable",       "GevSCPSPacketSize"};
+  static const char* const kNames[] = {
+      "PixelFormat",        "Width",           "Height",
+      "BinningHorizontal",  "BinningVertical", "DecimationHorizontal",
+      "DecimationVertical", "ChunkModeActive", "ChunkEnable",
+      "GevSCPSPacketSize"};
   for (const char* n : kNames) {
     if (name == n) return true;
   }
@@ -161,7 +161,8 @@ void AravisCameraImpl::attach_locked(GPtr<ArvCamera> camera) {
                                             " bytes failed: " + err.message());
       }
     }
-    GSocketAddress* address = arv_gv_device_get_device_address(ARV_GV_DEVICE(arv_camera_get_device(cam)));
+    GSocketAddress* address =
+        arv_gv_device_get_device_address(ARV_GV_DEVICE(arv_camera_get_device(cam)));
     if (address != nullptr && G_IS_INET_SOCKET_ADDRESS(address)) {
       gchar* text = g_inet_address_to_string(
           g_inet_socket_address_get_address(G_INET_SOCKET_ADDRESS(address)));
@@ -198,8 +199,8 @@ void AravisCameraImpl::require(std::initializer_list<CameraState> allowed, const
   for (CameraState a : allowed) {
     if (a == s) return;
   }
-  throw Error(ErrorCode::kState, label_ + ": " + what + " is not allowed while the camera is " +
-                                     camera_state_name(s));
+  throw Error(ErrorCode::kState,
+              label_ + ": " + what + " is not allowed while the camera is " + camera_state_name(s));
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -208,7 +209,8 @@ void AravisCameraImpl::require(std::initializer_list<CameraState> allowed, const
 CameraConfig AravisCameraImpl::read_config_locked() {
   ArvCamera* cam = camera_.get();
   auto check = [&](const GErr& err, const char* what) {
-    if (err) throw Error(ErrorCode::kDevice, label_ + ": reading " + what + " failed: " + err.message());
+    if (err)
+      throw Error(ErrorCode::kDevice, label_ + ": reading " + what + " failed: " + err.message());
   };
   CameraConfig c;
   GErr err;
@@ -241,7 +243,8 @@ CameraConfig AravisCameraImpl::read_config_locked() {
 CameraConfig AravisCameraImpl::validate_locked(const CameraConfig& requested) {
   ArvCamera* cam = camera_.get();
   auto check = [&](const GErr& err, const std::string& what) {
-    if (err) throw Error(ErrorCode::kDevice, label_ + ": reading " + what + " failed: " + err.message());
+    if (err)
+      throw Error(ErrorCode::kDevice, label_ + ": reading " + what + " failed: " + err.message());
   };
   CameraConfig out = requested;
   GErr err;
@@ -255,7 +258,8 @@ CameraConfig AravisCameraImpl::validate_locked(const CameraConfig& requested) {
 
   // Pixel format: one the camera offers and the engine converter reads.
   guint n_formats = 0;
-  const char** formats = arv_camera_dup_available_pixel_formats_as_strings(cam, &n_formats, err.out());
+  const char** formats =
+      arv_camera_dup_available_pixel_formats_as_strings(cam, &n_formats, err.out());
   check(err, "the available pixel formats");
   std::vector<std::string> offered;
   for (guint i = 0; formats != nullptr && i < n_formats; ++i) {
@@ -363,18 +367,23 @@ CameraConfig AravisCameraImpl::validate_locked(const CameraConfig& requested) {
     double lo = 0, hi = 0;
     GErr berr;
     bounds(cam, &lo, &hi, berr.out());
-    if (berr) throw Error(ErrorCode::kDevice, label_ + ": reading the " + what + " range failed: " + berr.message());
+    if (berr)
+      throw Error(ErrorCode::kDevice,
+                  label_ + ": reading the " + what + " range failed: " + berr.message());
     *result = std::clamp(*value, lo, std::max(lo, hi));
   };
-  clamp_value(requested.exposure_us, "exposure_us", "a positive number of microseconds",
-              [](ArvCamera* c) { return available(arv_camera_is_exposure_time_available, c); },
-              arv_camera_get_exposure_time_bounds, &out.exposure_us);
-  clamp_value(requested.gain_db, "gain_db", "a finite number",
-              [](ArvCamera* c) { return available(arv_camera_is_gain_available, c); },
-              arv_camera_get_gain_bounds, &out.gain_db);
-  clamp_value(requested.frame_rate_hz, "frame_rate_hz", "a positive number of frames per second",
-              [](ArvCamera* c) { return available(arv_camera_is_frame_rate_available, c); },
-              arv_camera_get_frame_rate_bounds, &out.frame_rate_hz);
+  clamp_value(
+      requested.exposure_us, "exposure_us", "a positive number of microseconds",
+      [](ArvCamera* c) { return available(arv_camera_is_exposure_time_available, c); },
+      arv_camera_get_exposure_time_bounds, &out.exposure_us);
+  clamp_value(
+      requested.gain_db, "gain_db", "a finite number",
+      [](ArvCamera* c) { return available(arv_camera_is_gain_available, c); },
+      arv_camera_get_gain_bounds, &out.gain_db);
+  clamp_value(
+      requested.frame_rate_hz, "frame_rate_hz", "a positive number of frames per second",
+      [](ArvCamera* c) { return available(arv_camera_is_frame_rate_available, c); },
+      arv_camera_get_frame_rate_bounds, &out.frame_rate_hz);
   return out;
 }
 
@@ -549,9 +558,9 @@ std::map<std::string, std::string> AravisCameraImpl::lock_for_calibration() {
     if (fi.writable) record_locked(Setting{std::nullopt, name, fi.value});
   }
   // What else determines the intrinsics of the images being calibrated.
-  for (const char* name : {"PixelFormat", "Width", "Height", "OffsetX", "OffsetY",
-                           "BinningHorizontal", "BinningVertical", "DecimationHorizontal",
-                           "DecimationVertical", "ReverseX", "ReverseY"}) {
+  for (const char* name :
+       {"PixelFormat", "Width", "Height", "OffsetX", "OffsetY", "BinningHorizontal",
+        "BinningVertical", "DecimationHorizontal", "DecimationVertical", "ReverseX", "ReverseY"}) {
     ArvGcFeatureNode* f = find_feature(device_, name);
     if (f == nullptr) continue;
     const FeatureInfo fi = describe_feature(f);
@@ -587,8 +596,8 @@ void AravisCameraImpl::start_locked() {
   ArvCamera* cam = camera_.get();
   GErr err;
   auto fail = [&](const std::string& what) {
-    throw Error(ErrorCode::kDevice, label_ + ": " + what + " failed" +
-                                        (err ? ": " + err.message() : std::string()));
+    throw Error(ErrorCode::kDevice,
+                label_ + ": " + what + " failed" + (err ? ": " + err.message() : std::string()));
   };
   const char* format = arv_camera_get_pixel_format_as_string(cam, err.out());
   if (err) fail("reading PixelFormat");
@@ -597,24 +606,27 @@ void AravisCameraImpl::start_locked() {
                 label_ + ": pixel format " + (format != nullptr ? format : "?") +
                     " cannot be converted for the engine (configure a supported one)");
   }
+  const guint payload = arv_camera_get_payload(cam, err.out());
+  if (err || payload == 0) fail("reading PayloadSize");
   GPtr<ArvStream> stream(arv_camera_create_stream(cam, nullptr, nullptr, err.out()));
   if (!stream) fail("creating the stream");
   if (ARV_IS_GV_STREAM(stream.get())) {
+    // Four frames of socket buffer: a camera sends a frame as one burst of packets.
+    const gint socket_buffer =
+        options_.socket_buffer_size > 0
+            ? options_.socket_buffer_size
+            : static_cast<gint>(std::min<guint64>(4ull * payload, guint64{64} << 20));
     g_object_set(stream.get(), "packet-resend",
                  options_.packet_resend ? ARV_GV_STREAM_PACKET_RESEND_ALWAYS
                                         : ARV_GV_STREAM_PACKET_RESEND_NEVER,
-                 "socket-buffer",
-                 options_.socket_buffer_size > 0 ? ARV_GV_STREAM_SOCKET_BUFFER_FIXED
-                                                 : ARV_GV_STREAM_SOCKET_BUFFER_AUTO,
-                 "socket-buffer-size", options_.socket_buffer_size, "packet-timeout",
-                 static_cast<guint>(options_.packet_timeout_us), "frame-retention",
-                 static_cast<guint>(options_.frame_retention_us), nullptr);
+                 "socket-buffer", ARV_GV_STREAM_SOCKET_BUFFER_FIXED, "socket-buffer-size",
+                 socket_buffer, "packet-timeout", static_cast<guint>(options_.packet_timeout_us),
+                 "frame-retention", static_cast<guint>(options_.frame_retention_us), nullptr);
   }
-  const guint payload = arv_camera_get_payload(cam, err.out());
-  if (err || payload == 0) fail("reading PayloadSize");
   auto pool = std::make_shared<BufferPool>(stream.get());
   const int n_buffers = queue_depth_.load() + options_.max_lent_buffers + options_.extra_buffers;
-  for (int i = 0; i < n_buffers; ++i) arv_stream_push_buffer(stream.get(), arv_buffer_new_allocate(payload));
+  for (int i = 0; i < n_buffers; ++i)
+    arv_stream_push_buffer(stream.get(), arv_buffer_new_allocate(payload));
   arv_camera_set_acquisition_mode(cam, ARV_ACQUISITION_MODE_CONTINUOUS, err.out());
   if (err) fail("setting AcquisitionMode to Continuous");
   last_buffer_ns_ = now_ns();
@@ -687,7 +699,8 @@ void AravisCameraImpl::pump(std::shared_ptr<BufferPool> pool, ArvStream* stream)
 }
 
 FrameStatus AravisCameraImpl::next_frame(int timeout_ms, Frame* frame) {
-  if (frame == nullptr) throw Error(ErrorCode::kInvalidArgument, label_ + ": next_frame(): frame is null");
+  if (frame == nullptr)
+    throw Error(ErrorCode::kInvalidArgument, label_ + ": next_frame(): frame is null");
   if (timeout_ms < 0) {
     throw Error(ErrorCode::kInvalidArgument,
                 label_ + ": next_frame(): negative timeout " + std::to_string(timeout_ms) + " ms");
@@ -718,6 +731,10 @@ FrameStatus AravisCameraImpl::next_frame(int timeout_ms, Frame* frame) {
 }
 
 FrameStatus AravisCameraImpl::deliver(Queued item, Frame* frame) {
+  // The caller's previous frame is being replaced: give its buffer back before deciding whether
+  // this one can be lent (a consumer reusing one Frame then never forces a copy).
+  frame->hold.reset();
+  frame->image.release();
   ArvBuffer* buffer = item.buffer;
   size_t size = 0;
   const void* data = arv_buffer_get_image_data(buffer, &size);
@@ -734,10 +751,11 @@ FrameStatus AravisCameraImpl::deliver(Queued item, Frame* frame) {
     if (bpp == 0) {
       char code[16];
       std::snprintf(code, sizeof code, "0x%08x", static_cast<unsigned>(arv_format));
-      throw Error(ErrorCode::kUnsupported,
-                  label_ + ": received a frame in pixel format " + code + ", which cannot be converted");
+      throw Error(ErrorCode::kUnsupported, label_ + ": received a frame in pixel format " + code +
+                                               ", which cannot be converted");
     }
-    const size_t stride = static_cast<size_t>(width) * bpp + static_cast<size_t>(std::max(0, x_padding));
+    const size_t stride =
+        static_cast<size_t>(width) * bpp + static_cast<size_t>(std::max(0, x_padding));
     image = convert_to_engine(format, data, size, width, height, stride);
     if (image.data == static_cast<const uchar*>(data)) {
       // Mono8/BGR8 wrap the buffer: lend it unless too many are out already.
@@ -767,7 +785,6 @@ FrameStatus AravisCameraImpl::deliver(Queued item, Frame* frame) {
       pool->give_back(static_cast<ArvBuffer*>(b));
     });
   } else {
-    frame->hold.reset();
     item.pool->give_back(buffer);
   }
   ++delivered_;
@@ -883,7 +900,8 @@ void AravisCameraImpl::supervise() {
       int64_t gap_ms = 0;
       if (s == CameraState::kStreaming) {
         gap_ms = (now - last_buffer_ns_.load()) / ms;
-        due = gap_ms >= options_.frame_timeout_ms && (now - last_probe) / ms >= options_.frame_timeout_ms;
+        due = gap_ms >= options_.frame_timeout_ms &&
+              (now - last_probe) / ms >= options_.frame_timeout_ms;
       } else {
         due = (now - last_probe) / ms >= options_.idle_probe_interval_ms;
       }
@@ -893,7 +911,8 @@ void AravisCameraImpl::supervise() {
           const Locator loc = locator();
           std::string why = "the camera does not answer";
           if (loc.gige) why += " GVCP at " + loc.address;
-          if (s == CameraState::kStreaming) why = "no frame for " + std::to_string(gap_ms) + " ms and " + why;
+          if (s == CameraState::kStreaming)
+            why = "no frame for " + std::to_string(gap_ms) + " ms and " + why;
           declare_disconnected(why);
           next_attempt = now_ns() + options_.reconnect_min_backoff_ms * ms;
           backoff_ms = options_.reconnect_min_backoff_ms;
@@ -949,8 +968,9 @@ bool AravisCameraImpl::try_reconnect(int attempt) {
   if (loc.gige && !loc.address.empty() &&
       gvcp_probe(loc.address, options_.probe_timeout_ms, options_.probe_retries)) {
     target = loc.address;
-  } else if (!loc.gige || attempt % 4 == 1) {
-    // Discovery (one second) finds a camera that came back elsewhere (DHCP) or over USB.
+  } else if (!loc.gige || attempt % 4 == 0) {
+    // Every fourth attempt (the cheap probe failed three times), discovery (one second) looks
+    // for a camera that came back at another address (DHCP); USB cameras are only found so.
     std::lock_guard<std::mutex> lock(device_list_mutex());
     arv_update_device_list();
     const unsigned n = arv_get_n_devices();
@@ -1031,7 +1051,8 @@ bool AravisCameraImpl::try_reconnect(int attempt) {
   emit(CameraEvent::Kind::kReconnected,
        label_ + " reconnected" + (streaming ? " and streaming again" : ""));
   for (const std::string& p : problems) {
-    emit(CameraEvent::Kind::kError, label_ + ": restoring a setting after the reconnect failed: " + p);
+    emit(CameraEvent::Kind::kError,
+         label_ + ": restoring a setting after the reconnect failed: " + p);
   }
   return true;
 }

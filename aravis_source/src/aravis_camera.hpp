@@ -30,7 +30,7 @@ namespace posecal::aravis {
 struct Locator {
   std::string device_id;  // Aravis device id ("" if opened by address and not discovered)
   std::string serial;
-  std::string address;    // IPv4 of a GigE Vision camera
+  std::string address;  // IPv4 of a GigE Vision camera
   bool gige = false;
 };
 
@@ -130,8 +130,8 @@ class AravisCameraImpl final : public AravisCamera {
   std::thread pump_thread_;
   std::atomic<bool> pump_quit_{false};
   std::vector<Setting> settings_;
-  bool configured_ = false;       // configure() succeeded at least once
-  bool want_streaming_ = false;   // start() succeeded and stop() was not called since
+  bool configured_ = false;      // configure() succeeded at least once
+  bool want_streaming_ = false;  // start() succeeded and stop() was not called since
   std::atomic<int> queue_depth_{4};
 
   std::atomic<CameraState> state_{CameraState::kOpened};
@@ -140,8 +140,8 @@ class AravisCameraImpl final : public AravisCamera {
   std::condition_variable queue_cv_;
   std::deque<Queued> queue_;
 
-  std::atomic<uint64_t> delivered_{0}, dropped_{0}, incomplete_{0}, disconnects_{0},
-      reconnects_{0}, zero_copy_{0}, copied_{0};
+  std::atomic<uint64_t> delivered_{0}, dropped_{0}, incomplete_{0}, disconnects_{0}, reconnects_{0},
+      zero_copy_{0}, copied_{0};
   std::atomic<int64_t> last_buffer_ns_{0};
 
   std::mutex callback_mutex_;

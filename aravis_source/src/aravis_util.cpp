@@ -22,17 +22,27 @@ std::mutex& device_list_mutex() {
 std::vector<std::string> genicam_pixel_format_names(PixelFormat format) {
   // SFNC/PFNC names first, then the GigE Vision 1.x names older cameras still use.
   switch (format) {
-    case PixelFormat::kMono8: return {"Mono8"};
-    case PixelFormat::kMono16: return {"Mono16"};
-    case PixelFormat::kRGB8: return {"RGB8", "RGB8Packed"};
-    case PixelFormat::kBGR8: return {"BGR8", "BGR8Packed"};
-    case PixelFormat::kBayerRG8: return {"BayerRG8"};
-    case PixelFormat::kBayerGR8: return {"BayerGR8"};
-    case PixelFormat::kBayerGB8: return {"BayerGB8"};
-    case PixelFormat::kBayerBG8: return {"BayerBG8"};
-    case PixelFormat::kYUYV: return {"YUV422_8", "YUV422_YUYV_Packed"};
+    case PixelFormat::kMono8:
+      return {"Mono8"};
+    case PixelFormat::kMono16:
+      return {"Mono16"};
+    case PixelFormat::kRGB8:
+      return {"RGB8", "RGB8Packed"};
+    case PixelFormat::kBGR8:
+      return {"BGR8", "BGR8Packed"};
+    case PixelFormat::kBayerRG8:
+      return {"BayerRG8"};
+    case PixelFormat::kBayerGR8:
+      return {"BayerGR8"};
+    case PixelFormat::kBayerGB8:
+      return {"BayerGB8"};
+    case PixelFormat::kBayerBG8:
+      return {"BayerBG8"};
+    case PixelFormat::kYUYV:
+      return {"YUV422_8", "YUV422_YUYV_Packed"};
     case PixelFormat::kMJPEG:
-    case PixelFormat::kUnknown: break;
+    case PixelFormat::kUnknown:
+      break;
   }
   return {};
 }
@@ -50,16 +60,26 @@ PixelFormat pixel_format_from_genicam(const std::string& name) {
 
 PixelFormat pixel_format_from_arv(ArvPixelFormat format) {
   switch (format) {
-    case ARV_PIXEL_FORMAT_MONO_8: return PixelFormat::kMono8;
-    case ARV_PIXEL_FORMAT_MONO_16: return PixelFormat::kMono16;
-    case ARV_PIXEL_FORMAT_RGB_8_PACKED: return PixelFormat::kRGB8;
-    case ARV_PIXEL_FORMAT_BGR_8_PACKED: return PixelFormat::kBGR8;
-    case ARV_PIXEL_FORMAT_BAYER_RG_8: return PixelFormat::kBayerRG8;
-    case ARV_PIXEL_FORMAT_BAYER_GR_8: return PixelFormat::kBayerGR8;
-    case ARV_PIXEL_FORMAT_BAYER_GB_8: return PixelFormat::kBayerGB8;
-    case ARV_PIXEL_FORMAT_BAYER_BG_8: return PixelFormat::kBayerBG8;
-    case ARV_PIXEL_FORMAT_YUV_422_YUYV_PACKED: return PixelFormat::kYUYV;
-    default: return PixelFormat::kUnknown;
+    case ARV_PIXEL_FORMAT_MONO_8:
+      return PixelFormat::kMono8;
+    case ARV_PIXEL_FORMAT_MONO_16:
+      return PixelFormat::kMono16;
+    case ARV_PIXEL_FORMAT_RGB_8_PACKED:
+      return PixelFormat::kRGB8;
+    case ARV_PIXEL_FORMAT_BGR_8_PACKED:
+      return PixelFormat::kBGR8;
+    case ARV_PIXEL_FORMAT_BAYER_RG_8:
+      return PixelFormat::kBayerRG8;
+    case ARV_PIXEL_FORMAT_BAYER_GR_8:
+      return PixelFormat::kBayerGR8;
+    case ARV_PIXEL_FORMAT_BAYER_GB_8:
+      return PixelFormat::kBayerGB8;
+    case ARV_PIXEL_FORMAT_BAYER_BG_8:
+      return PixelFormat::kBayerBG8;
+    case ARV_PIXEL_FORMAT_YUV_422_YUYV_PACKED:
+      return PixelFormat::kYUYV;
+    default:
+      return PixelFormat::kUnknown;
   }
 }
 
@@ -71,13 +91,17 @@ int bytes_per_pixel(PixelFormat format) {
     case PixelFormat::kBayerRG8:
     case PixelFormat::kBayerGR8:
     case PixelFormat::kBayerGB8:
-    case PixelFormat::kBayerBG8: return 1;
+    case PixelFormat::kBayerBG8:
+      return 1;
     case PixelFormat::kMono16:
-    case PixelFormat::kYUYV: return 2;
+    case PixelFormat::kYUYV:
+      return 2;
     case PixelFormat::kRGB8:
-    case PixelFormat::kBGR8: return 3;
+    case PixelFormat::kBGR8:
+      return 3;
     case PixelFormat::kMJPEG:
-    case PixelFormat::kUnknown: break;
+    case PixelFormat::kUnknown:
+      break;
   }
   return 0;
 }
@@ -150,7 +174,10 @@ bool gvcp_probe(const std::string& ipv4_address, int timeout_ms, int retries) {
                                  0x04,
                                  static_cast<uint8_t>(id >> 8),
                                  static_cast<uint8_t>(id & 0xff),
-                                 0, 0, 0, 0};
+                                 0,
+                                 0,
+                                 0,
+                                 0};
     if (::send(sock.fd, command, sizeof command, MSG_NOSIGNAL) < 0) {
       if (errno == ECONNREFUSED) return false;
       continue;

@@ -38,7 +38,9 @@ class GErr {
   std::string message() const { return error_ != nullptr ? error_->message : ""; }
   // Errors of the GenICam layer (out of range, read-only, unknown entry) versus transport errors
   // (timeouts, a vanished device).
-  bool is_genicam_error() const { return error_ != nullptr && error_->domain == arv_gc_error_quark(); }
+  bool is_genicam_error() const {
+    return error_ != nullptr && error_->domain == arv_gc_error_quark();
+  }
   void reset() {
     if (error_ != nullptr) g_error_free(error_);
     error_ = nullptr;

@@ -138,8 +138,8 @@ FeatureInfo describe_feature(ArvGcFeatureNode* node) {
   err.reset();
   const gboolean locked = arv_gc_feature_node_is_locked(node, err.out());
   const bool is_command = info.type == "command";
-  info.readable = usable && !is_command &&
-                  (access == ARV_GC_ACCESS_MODE_RO || access == ARV_GC_ACCESS_MODE_RW);
+  info.readable =
+      usable && !is_command && (access == ARV_GC_ACCESS_MODE_RO || access == ARV_GC_ACCESS_MODE_RW);
   info.writable = usable && !(locked && !err) &&
                   (access == ARV_GC_ACCESS_MODE_WO || access == ARV_GC_ACCESS_MODE_RW);
   if (info.readable) {
@@ -224,7 +224,8 @@ void write_feature(ArvDevice* device, const std::string& camera, const std::stri
   const std::string prefix = feature_prefix(camera, name);
   const char* type_c = feature_type(f);
   if (type_c == nullptr) {
-    throw Error(ErrorCode::kInvalidArgument, prefix + " is not a value (category or register node)");
+    throw Error(ErrorCode::kInvalidArgument,
+                prefix + " is not a value (category or register node)");
   }
   const std::string type = type_c;
   if (arv_gc_feature_node_get_actual_access_mode(f) == ARV_GC_ACCESS_MODE_RO) {
@@ -233,7 +234,8 @@ void write_feature(ArvDevice* device, const std::string& camera, const std::stri
   GErr err;
   const gboolean available = arv_gc_feature_node_is_available(f, err.out());
   if (!err && !available) {
-    throw Error(ErrorCode::kInvalidArgument, prefix + " is not available in the camera's current mode");
+    throw Error(ErrorCode::kInvalidArgument,
+                prefix + " is not available in the camera's current mode");
   }
   err.reset();
   const gboolean locked = arv_gc_feature_node_is_locked(f, err.out());
@@ -275,7 +277,8 @@ void write_feature(ArvDevice* device, const std::string& camera, const std::stri
     arv_gc_string_set_value(ARV_GC_STRING(f), value.c_str(), err.out());
   } else if (type == "float") {
     double v;
-    if (!parse_double(value, &v)) throw Error(ErrorCode::kInvalidArgument, bad + " (expected a number)");
+    if (!parse_double(value, &v))
+      throw Error(ErrorCode::kInvalidArgument, bad + " (expected a number)");
     ArvGcFloat* fl = ARV_GC_FLOAT(f);
     GErr e1, e2;
     const double mn = arv_gc_float_get_min(fl, e1.out());
@@ -287,19 +290,21 @@ void write_feature(ArvDevice* device, const std::string& camera, const std::stri
     arv_gc_float_set_value(fl, v, err.out());
   } else {  // integer
     int64_t v;
-    if (!parse_int64(value, &v)) throw Error(ErrorCode::kInvalidArgument, bad + " (expected an integer)");
+    if (!parse_int64(value, &v))
+      throw Error(ErrorCode::kInvalidArgument, bad + " (expected an integer)");
     ArvGcInteger* in = ARV_GC_INTEGER(f);
     GErr e1, e2, e3;
     const gint64 mn = arv_gc_integer_get_min(in, e1.out());
     const gint64 mx = arv_gc_integer_get_max(in, e2.out());
     const gint64 inc = arv_gc_integer_get_inc(in, e3.out());
     if (!e1 && !e2 && (v < mn || v > mx)) {
-      throw Error(ErrorCode::kInvalidArgument, bad + " (out of range [" + std::to_string(mn) +
-                                                   ", " + std::to_string(mx) + "])");
+      throw Error(ErrorCode::kInvalidArgument,
+                  bad + " (out of range [" + std::to_string(mn) + ", " + std::to_string(mx) + "])");
     }
     if (!e1 && !e3 && inc > 1 && (v - mn) % inc != 0) {
       throw Error(ErrorCode::kInvalidArgument, bad + " (must be " + std::to_string(mn) +
-                                                   " plus a multiple of " + std::to_string(inc) + ")");
+                                                   " plus a multiple of " + std::to_string(inc) +
+                                                   ")");
     }
     arv_gc_integer_set_value(in, v, err.out());
   }

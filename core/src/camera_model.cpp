@@ -293,16 +293,30 @@ cv::Mat CameraModel::distortion_map(int step) const {
   if (step < 1) throw Error(ErrorCode::kInvalidArgument, "distortion map step must be >= 1");
   const int rows = (height_ + step - 1) / step, cols = (width_ + step - 1) / step;
   cv::Mat map(rows, cols, CV_32F);
+  const double* dist = params_.data() + kNumPinholeParams;
   for (int i = 0; i < rows; ++i) {
+    const double ty = (i * step - cy()) / fy();
+    // Warm start from the left neighbour (the map is smooth): Newton needs one or two steps.
+    bool have_prev = false;
+    double px = 0, py = 0;
     for (int j = 0; j < cols; ++j) {
-      const Eigen::Vector2d p(j * step, i * step);
-      Eigen::Vector2d xn;
-      if (!unproject(p, &xn)) {
+      const double tx = (j * step - cx()) / fx();
+      double x = have_prev ? px : tx, y = have_prev ? py : ty;
+      bool ok = invert_distortion(model_, dist, tx, ty, &x, &y);
+      if (!ok && have_prev) {
+        x = tx;
+        y = ty;
+        ok = invert_distortion(model_, dist, tx, ty, &x, &y);
+      }
+      if (!ok) {
         map.at<float>(i, j) = std::numeric_limits<float>::quiet_NaN();
+        have_prev = false;
         continue;
       }
-      const Eigen::Vector2d ideal(fx() * xn.x() + cx(), fy() * xn.y() + cy());
-      map.at<float>(i, j) = static_cast<float>((ideal - p).norm());
+      have_prev = true;
+      px = x;
+      py = y;
+      map.at<float>(i, j) = static_cast<float>(std::hypot(fx() * (x - tx), fy() * (y - ty)));
     }
   }
   return map;

@@ -59,6 +59,9 @@ bool EngineOptions::is_valid(std::string* error) const {
   if (!(bootstrap_max_relative_std > 0 && bootstrap_max_relative_std <= 1)) {
     return fail("bootstrap_max_relative_std must be in (0, 1]");
   }
+  if (!(bootstrap_max_pp_sensitivity > 0 && bootstrap_max_pp_sensitivity <= 10)) {
+    return fail("bootstrap_max_pp_sensitivity must be in (0, 10]");
+  }
   if (!(initial_focal_guess >= 0) || !std::isfinite(initial_focal_guess)) return fail("initial_focal_guess must be >= 0");
   std::string why;
   if (!posegen.is_valid(&why)) return fail("posegen: " + why);
@@ -101,7 +104,7 @@ struct CalibrationEngine::Impl {
   EngineState state = EngineState::kWaitingForBoard;
   std::string failure;
   CameraModel estimate;            // current intrinsics
-  double best_bootstrap_rms = std::numeric_limits<double>::infinity();
+  double best_bootstrap_rms = std::numeric_limits<double>::infinity();  // relative std of f
   bool have_bootstrap = false;
   std::optional<TargetPose> target;
   int target_param = -1;
@@ -190,15 +193,37 @@ struct CalibrationEngine::Impl {
   bool try_bootstrap(const Detection& det) {
     if (static_cast<int>(det.size()) < bootstrap_min_corners()) return false;
     CalibrationOptions co = opt.calibration;
+    // Focal lengths only: fx and fy both free. The paper's sampling protocol varies them
+    // independently by 10%; forcing fx = fy turns the aspect ratio into a false tilt seen from
+    // far away (seen: f 4.5x too large), which sends a robot to an invisible target.
     co.fix_principal_point = true;
-    co.fix_aspect_ratio = true;
+    co.fix_aspect_ratio = false;
     co.zero_distortion = true;
     co.fixed.clear();
     try {
       const CalibrationResult r = calibrate({Observation::from(det)}, size, co);
-      if (r.std_unit[0] > opt.bootstrap_max_relative_std * r.model.fx()) return false;
-      if (r.rms_px < best_bootstrap_rms) {
-        best_bootstrap_rms = r.rms_px;
+      // Uncertainty at the measured noise level, floored at 0.1 px so that a perfect fit of a
+      // weak view cannot pass: telephoto lenses see little perspective, so at 1 px noise even a
+      // 60 degree tilt leaves f 5% uncertain, while their real corner noise is ~0.05 px.
+      const double sigma = std::max(0.1, std::sqrt(r.residual_variance));
+      const double rel_std = r.std_unit[0] * sigma / r.model.fx();
+      if (rel_std > opt.bootstrap_max_relative_std) return false;
+      // Bias: the principal point is assumed at the centre. A weak view lets that assumption
+      // move f a lot (seen: f 5x too large from a 10 degree view of a camera whose principal
+      // point was 100 px off); a robot sent to a target computed with such an f sees nothing.
+      // Refit with the principal point moved by 5% of the image; f must stay within 10%.
+      for (const cv::Point2d d : {cv::Point2d(0.05, 0), cv::Point2d(-0.05, 0), cv::Point2d(0, 0.05), cv::Point2d(0, -0.05)}) {
+        CameraModel shifted = r.model;
+        shifted.params()[2] += d.x * size.width;
+        shifted.params()[3] += d.y * size.height;
+        const WarmStart ws{shifted, r.poses};
+        const CalibrationResult rs = calibrate({Observation::from(det)}, size, co, &ws);
+        if (std::abs(rs.model.fx() - r.model.fx()) > opt.bootstrap_max_pp_sensitivity * r.model.fx()) return false;
+      }
+      // Deviation from the paper (which keeps the best by residual): keep the view that
+      // determines f best. A weak view fits any f with a low residual (docs/pose-selection.md).
+      if (rel_std < best_bootstrap_rms) {
+        best_bootstrap_rms = rel_std;
         estimate = r.model;
         have_bootstrap = true;
         return true;
@@ -458,10 +483,9 @@ struct CalibrationEngine::Impl {
         state == EngineState::kInitialPose2) {
       // Until two keyframes exist, keep improving the bootstrap (paper §3.4).
       const double f_before = estimate.fx();
-      // A robot shows the board at the literal first target (tilted 45 degrees, a strong view for
-      // f); frames taken while it moves or before it arrives must not set the scale of the
-      // targets it is sent to next.
-      const bool may_bootstrap = !opt.robot || (robot_reached && r.still);
+      // Robots: only still frames (not the ones taken while moving); the strong view at the
+      // first target (tilted 45 degrees) then replaces a weaker start view.
+      const bool may_bootstrap = !opt.robot || r.still;
       if (keyframes.empty() && may_bootstrap && try_bootstrap(det)) {
         const bool first = state == EngineState::kBootstrapping;
         if (first) set_state(EngineState::kInitialPose1);
@@ -471,10 +495,6 @@ struct CalibrationEngine::Impl {
           set_target(posegen.initial_pose(0, estimate), -1);
         }
       }
-    }
-    // Robots move to the literal first target even before the bootstrap: give them one.
-    if (state == EngineState::kWaitingForBoard || state == EngineState::kBootstrapping) {
-      if (opt.robot && !target) set_target(posegen.initial_pose(0, estimate), -1);
     }
 
     std::optional<Pose> current;
@@ -507,8 +527,12 @@ struct CalibrationEngine::Impl {
         TargetPose t = *target;
         const cv::Size2d bs = board.board_size_m();
         const Eigen::Vector3d c = t.T_cam_board.apply(Eigen::Vector3d(bs.width / 2, bs.height / 2, 0));
-        t.T_cam_board.t += c * 0.1;
-        t.note = "only " + std::to_string(r.corners) + " corners visible at the target: moved back 10%";
+        // Back off in proportion to the part of the board that is missing (10% .. 100%).
+        const double factor =
+            std::clamp(std::sqrt(board.num_corners() / std::max(1.0, static_cast<double>(r.corners))), 1.1, 2.0);
+        t.T_cam_board.t += c * (factor - 1.0);
+        t.note = "only " + std::to_string(r.corners) + " corners visible at the target: moved back " +
+                 percent(factor - 1.0);
         set_target(t, target_param);
       } else if (state == EngineState::kRefining && opt.target_timeout_frames > 0 &&
                  frame_index - target_since_frame > static_cast<uint64_t>(opt.target_timeout_frames)) {

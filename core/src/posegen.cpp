@@ -294,7 +294,9 @@ std::vector<TargetPose> PoseGenerator::candidates(int param_index, const CameraM
   const int axis = (param_index == 0 || param_index == 2) ? 1 : 0;
   const bool shifted = param_index >= 2;
   std::vector<TargetPose> out;
-  for (int n = 0; static_cast<int>(out.size()) < count && n < 1 << 12; ++n) {
+  constexpr int kSequenceLength = 1 << 12;  // angles closer than 0.03 deg apart: start over
+  if (pinhole_poses_generated(axis) >= kSequenceLength) used_[axis].clear();
+  for (int n = 0; static_cast<int>(out.size()) < count && n < kSequenceLength; ++n) {
     if (n < static_cast<int>(used_[axis].size()) && used_[axis][n]) continue;
     const double tilt = -options_.max_tilt_deg + 2.0 * options_.max_tilt_deg * binary_subdivision(n);
     const double size = axis == 1 ? size_.width : size_.height;

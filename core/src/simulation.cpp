@@ -50,8 +50,13 @@ Pose SimulatedOperator::perturb(const Pose& p) {
   const double sr = opt_.rotation_error_deg * kPi / 180.0;
   const Eigen::Vector3d c = p.apply(board_centre(target_));
   const Eigen::Matrix3d R = small_rotation(sr * N(rng_), sr * N(rng_), sr * N(rng_)) * p.R();
+  // Translation error: N(0, 2% of the distance) per axis. For fields of view narrower than the
+  // C525's (width / f = 1.2) the lateral part shrinks with the view, so the error stays the same
+  // in the image: nobody misaligns an overlay by a fifth of a telephoto's view
+  // (docs/pose-selection.md).
   const double st = opt_.translation_error_fraction * c.norm();
-  const Eigen::Vector3d c2 = c + Eigen::Vector3d(st * N(rng_), st * N(rng_), st * N(rng_));
+  const double fov = std::min(1.0, truth_.width() / truth_.fx() / 1.2);
+  const Eigen::Vector3d c2 = c + Eigen::Vector3d(st * fov * N(rng_), st * fov * N(rng_), st * N(rng_));
   return Pose::from_rotation(R, c2 - R * board_centre(target_));
 }
 
@@ -64,8 +69,12 @@ Pose SimulatedOperator::bootstrap_goal() {
   const Eigen::Vector2d px(truth_.cx() + 0.1 * truth_.width() * U(rng_), truth_.cy() + 0.1 * truth_.height() * U(rng_));
   Eigen::Vector2d xn;
   if (!truth_.unproject(px, &xn)) xn.setZero();
-  const double d10 = 10.0 * kPi / 180.0;
-  const Eigen::Matrix3d R = small_rotation(d10 * N(rng_), d10 * N(rng_), 0.5 * d10 * N(rng_));
+  // Roughly fronto-parallel at first; each further attempt follows the guidance "tilt the board"
+  // a little more (10 degrees more per attempt, up to 50), about a random in-plane axis.
+  const double tilt = std::min(50.0, 10.0 * (1 + tries_)) * kPi / 180.0 * std::abs(N(rng_));
+  const double axis = kPi * U(rng_);
+  const Eigen::Matrix3d R = Eigen::AngleAxisd(tilt, Eigen::Vector3d(std::cos(axis), std::sin(axis), 0)).toRotationMatrix() *
+                            small_rotation(0, 0, 5.0 * kPi / 180.0 * N(rng_));
   const Eigen::Vector3d c(xn.x() * depth, xn.y() * depth, depth);
   return Pose::from_rotation(R, c - R * board_centre(target_));
 }
@@ -121,7 +130,8 @@ Pose SimulatedOperator::next_pose(const GuidanceInfo& g) {
       gave_up_ = false;
       start_attempt();
     } else if (phase_frame_ >= cycle && !gave_up_) {
-      if (++tries_ < opt_.max_tries) {
+      // While bootstrapping the engine keeps asking; a person keeps trying.
+      if (++tries_ < opt_.max_tries || !g.has_target) {
         start_attempt();
       } else {
         gave_up_ = true;

@@ -71,7 +71,8 @@ bool FakeGvCamera::start() {
     return false;
   }
   g_object_set(gv_, "gvsp-lost-ratio", lost_ratio_, nullptr);
-  arv_fake_camera_set_fill_pattern(arv_gv_fake_camera_get_fake_camera(gv_), &FakeGvCamera::fill, this);
+  arv_fake_camera_set_fill_pattern(arv_gv_fake_camera_get_fake_camera(gv_), &FakeGvCamera::fill,
+                                   this);
   return true;
 }
 
@@ -104,7 +105,8 @@ std::vector<uint8_t> FakeGvCamera::expected_raw(uint64_t frame_id, PixelFormat f
   return raw_from_grey(expected_grey(frame_id, roi), format);
 }
 
-cv::Mat FakeGvCamera::expected_engine(uint64_t frame_id, PixelFormat format, const cv::Rect& roi) const {
+cv::Mat FakeGvCamera::expected_engine(uint64_t frame_id, PixelFormat format,
+                                      const cv::Rect& roi) const {
   std::vector<uint8_t> raw = expected_raw(frame_id, format, roi);
   return convert_to_engine(format, raw.data(), raw.size(), roi.width, roi.height, 0).clone();
 }
@@ -115,14 +117,29 @@ void FakeGvCamera::fill(ArvBuffer* buffer, void* self_ptr, guint32 /*exposure_us
   auto* self = static_cast<FakeGvCamera*>(self_ptr);
   PixelFormat format = PixelFormat::kUnknown;
   switch (arv_format) {
-    case ARV_PIXEL_FORMAT_MONO_8: format = PixelFormat::kMono8; break;
-    case ARV_PIXEL_FORMAT_MONO_16: format = PixelFormat::kMono16; break;
-    case ARV_PIXEL_FORMAT_RGB_8_PACKED: format = PixelFormat::kRGB8; break;
-    case ARV_PIXEL_FORMAT_BAYER_RG_8: format = PixelFormat::kBayerRG8; break;
-    case ARV_PIXEL_FORMAT_BAYER_GR_8: format = PixelFormat::kBayerGR8; break;
-    case ARV_PIXEL_FORMAT_BAYER_GB_8: format = PixelFormat::kBayerGB8; break;
-    case ARV_PIXEL_FORMAT_BAYER_BG_8: format = PixelFormat::kBayerBG8; break;
-    default: return;
+    case ARV_PIXEL_FORMAT_MONO_8:
+      format = PixelFormat::kMono8;
+      break;
+    case ARV_PIXEL_FORMAT_MONO_16:
+      format = PixelFormat::kMono16;
+      break;
+    case ARV_PIXEL_FORMAT_RGB_8_PACKED:
+      format = PixelFormat::kRGB8;
+      break;
+    case ARV_PIXEL_FORMAT_BAYER_RG_8:
+      format = PixelFormat::kBayerRG8;
+      break;
+    case ARV_PIXEL_FORMAT_BAYER_GR_8:
+      format = PixelFormat::kBayerGR8;
+      break;
+    case ARV_PIXEL_FORMAT_BAYER_GB_8:
+      format = PixelFormat::kBayerGB8;
+      break;
+    case ARV_PIXEL_FORMAT_BAYER_BG_8:
+      format = PixelFormat::kBayerBG8;
+      break;
+    default:
+      return;
   }
   const cv::Rect roi(arv_buffer_get_image_x(buffer), arv_buffer_get_image_y(buffer),
                      arv_buffer_get_image_width(buffer), arv_buffer_get_image_height(buffer));

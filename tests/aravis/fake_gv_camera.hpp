@@ -55,7 +55,8 @@ class FakeGvCamera {
   // The 8-bit grey image behind frame `frame_id` over `roi` (sensor coordinates).
   cv::Mat expected_grey(uint64_t frame_id, const cv::Rect& roi) const;
   // The raw GVSP payload of that frame in `format`, and what convert_to_engine makes of it.
-  std::vector<uint8_t> expected_raw(uint64_t frame_id, PixelFormat format, const cv::Rect& roi) const;
+  std::vector<uint8_t> expected_raw(uint64_t frame_id, PixelFormat format,
+                                    const cv::Rect& roi) const;
   cv::Mat expected_engine(uint64_t frame_id, PixelFormat format, const cv::Rect& roi) const;
 
  private:

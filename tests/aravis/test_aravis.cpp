@@ -67,7 +67,8 @@ struct EventLog {
     };
   }
   // Waits until `count` events of `kind` arrived; returns the time of the last one.
-  std::optional<Clock::time_point> wait_for(CameraEvent::Kind kind, int timeout_ms, size_t count = 1) {
+  std::optional<Clock::time_point> wait_for(CameraEvent::Kind kind, int timeout_ms,
+                                            size_t count = 1) {
     std::unique_lock<std::mutex> lock(mutex);
     std::optional<Clock::time_point> when;
     cv.wait_for(lock, std::chrono::milliseconds(timeout_ms), [&] {
@@ -105,7 +106,8 @@ class AravisTest : public ::testing::Test {
   static Frame pull(Camera& cam, int timeout_ms = 3000) {
     Frame f;
     const FrameStatus s = cam.next_frame(timeout_ms, &f);
-    EXPECT_EQ(s, FrameStatus::kOk) << "next_frame(" << timeout_ms << ") returned " << static_cast<int>(s);
+    EXPECT_EQ(s, FrameStatus::kOk)
+        << "next_frame(" << timeout_ms << ") returned " << static_cast<int>(s);
     return f;
   }
   // True if the frame is bit-identical to what the simulator sent.
@@ -173,8 +175,8 @@ TEST_F(AravisTest, EnumerateListsTheSimulator) {
 TEST_F(AravisTest, OpensBySerialDeviceIdAndAddress) {
   ASSERT_NO_FATAL_FAILURE(start_fake("PCAL-OPEN", 1));
   CameraManager& m = manager();
-  for (const std::string uri : {"aravis://PCAL-OPEN", "aravis://Aravis-Fake-PCAL-OPEN",
-                                "aravis://127.0.0.1"}) {
+  for (const std::string uri :
+       {"aravis://PCAL-OPEN", "aravis://Aravis-Fake-PCAL-OPEN", "aravis://127.0.0.1"}) {
     SCOPED_TRACE(uri);
     const auto t0 = Clock::now();
     auto cam = m.open(uri);
@@ -286,14 +288,17 @@ TEST_F(AravisTest, FeaturesListGetSetAndErrors) {
   EXPECT_EQ(code, ErrorCode::kInvalidArgument);
   EXPECT_NE(msg.find("out of range"), std::string::npos) << msg;
   EXPECT_EQ(cam->get_feature("GainRaw"), "7");  // unchanged
-  EXPECT_EQ(error_of([&] { cam->set_feature("GainRaw", "seven"); }).first, ErrorCode::kInvalidArgument);
-  EXPECT_EQ(error_of([&] { cam->set_feature("TestBoolean", "maybe"); }).first, ErrorCode::kInvalidArgument);
+  EXPECT_EQ(error_of([&] { cam->set_feature("GainRaw", "seven"); }).first,
+            ErrorCode::kInvalidArgument);
+  EXPECT_EQ(error_of([&] { cam->set_feature("TestBoolean", "maybe"); }).first,
+            ErrorCode::kInvalidArgument);
   std::tie(code, msg) = error_of([&] { cam->set_feature("PixelFormat", "Mono12"); });
   EXPECT_EQ(code, ErrorCode::kInvalidArgument);
   EXPECT_NE(msg.find("Mono16"), std::string::npos) << "should list the options: " << msg;
   EXPECT_EQ(error_of([&] { cam->set_feature("AcquisitionStart", ""); }).first,
             ErrorCode::kInvalidArgument);
-  EXPECT_EQ(error_of([&] { cam->get_feature("AcquisitionStart"); }).first, ErrorCode::kInvalidArgument);
+  EXPECT_EQ(error_of([&] { cam->get_feature("AcquisitionStart"); }).first,
+            ErrorCode::kInvalidArgument);
   EXPECT_EQ(error_of([&] { cam->get_feature("Root"); }).first, ErrorCode::kInvalidArgument);
 }
 
@@ -447,7 +452,8 @@ TEST_F(AravisTest, NextFrameHonoursItsTimeout) {
     if (st == FrameStatus::kTimeout) {
       EXPECT_GE(took, timeout_ms - 1) << "returned early";
     }
-    EXPECT_LE(took, timeout_ms + 30) << "next_frame(" << timeout_ms << ") blocked for " << took << " ms";
+    EXPECT_LE(took, timeout_ms + 30)
+        << "next_frame(" << timeout_ms << ") blocked for " << took << " ms";
   }
   EXPECT_EQ(cam->next_frame(2000, &f), FrameStatus::kOk);
 }
@@ -484,8 +490,8 @@ TEST_F(AravisTest, Mono8FramesAreExactZeroCopyAndShowTheBoard) {
 TEST_F(AravisTest, ConvertedFormatsMono16Rgb8Bayer) {
   ASSERT_NO_FATAL_FAILURE(start_fake("PCAL-CONV"));
   auto cam = manager().open(uri());
-  for (PixelFormat format : {PixelFormat::kMono16, PixelFormat::kRGB8, PixelFormat::kBayerRG8,
-                             PixelFormat::kBayerBG8}) {
+  for (PixelFormat format :
+       {PixelFormat::kMono16, PixelFormat::kRGB8, PixelFormat::kBayerRG8, PixelFormat::kBayerBG8}) {
     SCOPED_TRACE(pixel_format_name(format));
     cam->configure(stream_config(format));
     cam->start();
@@ -554,6 +560,19 @@ TEST_F(AravisTest, LentBuffersAreBoundedAndNeverStarveTheStream) {
   EXPECT_GE(t.frames_zero_copy, 3u);
 }
 
+TEST_F(AravisTest, ConsumerReusingOneFrameStaysZeroCopy) {
+  ASSERT_NO_FATAL_FAILURE(start_fake("PCAL-REUSE", 2));
+  auto cam = manager().open(uri() + "?max_lent_buffers=1");
+  cam->configure(stream_config(PixelFormat::kMono8, cv::Rect(0, 0, 640, 480), 60));
+  cam->start();
+  Frame f;  // the previous frame's buffer goes back before the next one is lent
+  for (int i = 0; i < 8; ++i) {
+    ASSERT_EQ(cam->next_frame(3000, &f), FrameStatus::kOk);
+    EXPECT_NE(f.hold, nullptr) << "frame " << i << " was copied";
+    EXPECT_TRUE(exact(f, PixelFormat::kMono8, cv::Rect(0, 0, 640, 480)));
+  }
+}
+
 TEST_F(AravisTest, BoundedQueueDropsTheOldestFrame) {
   ASSERT_NO_FATAL_FAILURE(start_fake("PCAL-QUEUE", 2));
   auto cam = manager().open(uri());
@@ -595,9 +614,10 @@ TEST_F(AravisTest, PacketLossNeverDeliversACorruptFrame) {
     }
     const CameraStats s = cam->stats();
     const AravisTransportStats t = arv->transport_stats();
-    std::printf("resend=%s: %d exact frames, %d corrupt, %llu incomplete dropped, %llu missing packets\n",
-                resend, good, bad, static_cast<unsigned long long>(s.frames_incomplete),
-                static_cast<unsigned long long>(t.missing_packets));
+    std::printf(
+        "resend=%s: %d exact frames, %d corrupt, %llu incomplete dropped, %llu missing packets\n",
+        resend, good, bad, static_cast<unsigned long long>(s.frames_incomplete),
+        static_cast<unsigned long long>(t.missing_packets));
     EXPECT_EQ(bad, 0);
     EXPECT_GE(good, 20);
     EXPECT_GE(s.frames_incomplete, 5u) << "the loss should have hit some frames";
@@ -714,7 +734,7 @@ TEST_F(AravisTest, NoReconnectWhenDisabled) {
 namespace {
 
 std::string netns_inode() {
-  struct stat st{};
+  struct stat st {};
   if (::stat("/proc/self/ns/net", &st) != 0) return "";
   return std::to_string(st.st_ino);
 }
@@ -766,11 +786,11 @@ TEST(AravisMultiCamera, ThreeCamerasInPrivateNetworkNamespace) {
   }
   const std::string result = "/tmp/posecal_aravis_netns_" + std::to_string(::getpid());
   std::remove(result.c_str());
-  const int status =
-      run({"unshare", "-n", "--", self_exe(),
-           "--gtest_filter=AravisMultiCamera.DISABLED_InsidePrivateNamespace",
-           "--gtest_also_run_disabled_tests"},
-          60000, {"POSECAL_ARAVIS_PARENT_NETNS=" + netns_inode(), "POSECAL_ARAVIS_RESULT=" + result});
+  const int status = run(
+      {"unshare", "-n", "--", self_exe(),
+       "--gtest_filter=AravisMultiCamera.DISABLED_InsidePrivateNamespace",
+       "--gtest_also_run_disabled_tests"},
+      60000, {"POSECAL_ARAVIS_PARENT_NETNS=" + netns_inode(), "POSECAL_ARAVIS_RESULT=" + result});
   std::ifstream in(result);
   std::string verdict;
   std::getline(in, verdict);
@@ -805,7 +825,8 @@ TEST(AravisMultiCamera, DISABLED_InsidePrivateNamespace) {
   const auto listed = m.list();
   for (const auto& fake : fakes) {
     bool found = false;
-    for (const auto& d : listed) found |= d.serial == fake->serial() && d.uri == "aravis://" + fake->device_id();
+    for (const auto& d : listed)
+      found |= d.serial == fake->serial() && d.uri == "aravis://" + fake->device_id();
     EXPECT_TRUE(found) << fake->serial() << " not listed";
   }
   std::vector<std::unique_ptr<Camera>> cams;
@@ -823,7 +844,8 @@ TEST(AravisMultiCamera, DISABLED_InsidePrivateNamespace) {
       Frame f;
       ASSERT_EQ(cams[i]->next_frame(3000, &f), FrameStatus::kOk) << fakes[i]->serial();
       const cv::Mat e = fakes[i]->expected_engine(f.frame_id, PixelFormat::kMono8, kFullView);
-      EXPECT_EQ(cv::norm(f.image, e, cv::NORM_INF), 0) << fakes[i]->serial() << " frame " << f.frame_id;
+      EXPECT_EQ(cv::norm(f.image, e, cv::NORM_INF), 0)
+          << fakes[i]->serial() << " frame " << f.frame_id;
       if (round == 0) {
         const Detection d = fakes[i]->scene().target.detect(f.image);
         EXPECT_GE(d.size() * 4, static_cast<size_t>(fakes[i]->scene().target.num_corners()) * 3);
@@ -841,8 +863,10 @@ TEST(AravisMultiCamera, DISABLED_InsidePrivateNamespace) {
   EXPECT_LE(ms_since(t0), 2000);
   for (size_t i : {0, 2}) {
     ASSERT_EQ(cams[i]->next_frame(3000, &f), FrameStatus::kOk);
-    EXPECT_EQ(cv::norm(f.image, fakes[i]->expected_engine(f.frame_id, PixelFormat::kMono8, kFullView),
-                       cv::NORM_INF), 0);
+    EXPECT_EQ(
+        cv::norm(f.image, fakes[i]->expected_engine(f.frame_id, PixelFormat::kMono8, kFullView),
+                 cv::NORM_INF),
+        0);
   }
   ASSERT_TRUE(fakes[1]->start());
   t0 = Clock::now();
@@ -850,7 +874,8 @@ TEST(AravisMultiCamera, DISABLED_InsidePrivateNamespace) {
   }
   ASSERT_EQ(st, FrameStatus::kOk) << "PCAL-M2 did not come back";
   EXPECT_EQ(cv::norm(f.image, fakes[1]->expected_engine(f.frame_id, PixelFormat::kMono8, kFullView),
-                     cv::NORM_INF), 0);
+                     cv::NORM_INF),
+            0);
   EXPECT_EQ(cams[0]->stats().disconnects + cams[2]->stats().disconnects, 0u);
   cams.clear();
   if (!::testing::Test::HasFailure()) std::ofstream(result) << "passed\n";

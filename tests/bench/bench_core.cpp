@@ -4,6 +4,8 @@
 #include <benchmark/benchmark.h>
 
 #include "posecal/calibration.hpp"
+#include "posecal/engine.hpp"
+#include "posecal/posegen.hpp"
 #include "posecal/synthetic.hpp"
 #include "posecal/views.hpp"
 
@@ -99,5 +101,81 @@ static void BM_RenderFrame_1280x720(benchmark::State& state) {
   }
 }
 BENCHMARK(BM_RenderFrame_1280x720)->Unit(benchmark::kMillisecond);
+
+// Target pose generation, the paper's rule: the next C_K pose (sequence element, roll, shift,
+// moved back to stay in view) for cx.
+static void BM_TargetPose_Pinhole_PaperRule(benchmark::State& state) {
+  Fixture& f = fixture();
+  PoseGenerator pg(f.target, f.truth.size());
+  for (auto _ : state) {
+    TargetPose t = pg.next_pose(2, f.nine.model);
+    benchmark::DoNotOptimize(t.T_cam_board.t.data());
+  }
+}
+BENCHMARK(BM_TargetPose_Pinhole_PaperRule)->Unit(benchmark::kMicrosecond);
+
+// The paper's C_Delta rule: distortion map of the estimate, threshold search for the most
+// distorted unvisited region, board placement; the mask is reset so every call searches anew.
+static void BM_TargetPose_Distortion_PaperRule(benchmark::State& state) {
+  Fixture& f = fixture();
+  for (auto _ : state) {
+    state.PauseTiming();
+    PoseGenerator pg(f.target, f.truth.size());
+    state.ResumeTiming();
+    TargetPose t = pg.next_pose(4, f.nine.model);
+    benchmark::DoNotOptimize(t.T_cam_board.t.data());
+  }
+}
+BENCHMARK(BM_TargetPose_Distortion_PaperRule)->Unit(benchmark::kMicrosecond);
+
+// The engine's default: 6 rule-generated candidates, each scored by the predicted variance of
+// the targeted parameter (Schur complement of its 40 corners' information), as the engine does.
+static void BM_TargetPose_Scored6(benchmark::State& state) {
+  Fixture& f = fixture();
+  const int param = static_cast<int>(state.range(0));
+  const Eigen::MatrixXd info = intrinsics_information(f.nine);
+  for (auto _ : state) {
+    state.PauseTiming();
+    PoseGenerator pg(f.target, f.truth.size());
+    state.ResumeTiming();
+    auto score = [&](const TargetPose& t) {
+      const Eigen::MatrixXd I = info + frame_information(f.nine.model, t.T_cam_board, f.target.corners(), f.nine.fixed);
+      return Eigen::MatrixXd(I.ldlt().solve(Eigen::MatrixXd::Identity(9, 9)))(param, param);
+    };
+    TargetPose t = pg.next_pose(param, f.nine.model, score, 6);
+    benchmark::DoNotOptimize(t.T_cam_board.t.data());
+  }
+}
+BENCHMARK(BM_TargetPose_Scored6)->Arg(2)->Arg(4)->Unit(benchmark::kMicrosecond);
+
+// One frame of the live loop while refining: detection, stillness, pose (PnP), Jaccard of the
+// target and current board areas, guidance. The board is away from the target, so no keyframe.
+static void BM_EngineFrame_1280x720(benchmark::State& state) {
+  Fixture& f = fixture();
+  RenderOptions ro;
+  ro.noise_sigma = 2;
+  ro.blur_sigma_px = 0.8;
+  SyntheticCamera sc(f.truth, f.target, ro);
+  EngineOptions eo;
+  eo.robot = true;
+  CalibrationEngine e(f.truth.size(), eo);
+  const Pose start = board_pose_at(f.target, Eigen::Vector3d(0, 0, 0.5), 0.4, 0.5, 0.2);
+  for (int i = 0; i < 200 && e.state() != EngineState::kRefining; ++i) {
+    const Pose p = e.target() ? e.target()->T_cam_board : start;
+    if (e.target() && i % 3 == 1) e.report_pose_reached();
+    e.process(sc.render(p));
+  }
+  if (e.state() != EngineState::kRefining) {
+    state.SkipWithError("engine did not reach refining");
+    return;
+  }
+  const cv::Mat frame = sc.render(random_board_views(99, 1, f.truth, f.target)[0]);
+  for (auto _ : state) {
+    FrameReport r = e.process(frame);
+    if (r.captured) state.SkipWithError("captured a keyframe: not a plain live-loop frame");
+    benchmark::DoNotOptimize(r.jaccard);
+  }
+}
+BENCHMARK(BM_EngineFrame_1280x720)->Unit(benchmark::kMillisecond);
 
 BENCHMARK_MAIN();

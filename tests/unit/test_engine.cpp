@@ -86,6 +86,13 @@ bool hold_until_capture(CalibrationEngine& e, SyntheticCamera& cam, const Pose& 
   return false;
 }
 
+// A robot first presents the board from its start pose (tilted, held still) so the engine can
+// estimate the focal length before it sends the robot anywhere.
+void present_start_view(CalibrationEngine& e, Rig& rig) {
+  const Pose start = board_pose_at(rig.target, Eigen::Vector3d(0, 0, 0.5), 0.4, 30 * M_PI / 180, 0.2);
+  for (int i = 0; i < 3 && !e.target(); ++i) e.process(rig.camera.render(start));
+}
+
 }  // namespace
 
 TEST(Engine, WaitsForTheBoardThenBootstrapsThenFollowsInitialPoses) {
@@ -120,8 +127,8 @@ TEST(Engine, StillnessAndCornerCountGateTheCapture) {
   EngineOptions o;
   o.robot = true;
   CalibrationEngine e(rig.truth.size(), o);
-  // Robot mode gets a target at once; the bootstrap waits for the robot's report.
-  e.process(rig.camera.render(board_pose_at(rig.target, Eigen::Vector3d(0, 0, 0.5), 0, 0, 0)));
+  // Robot mode: a target once the start view has given a focal length.
+  present_start_view(e, rig);
   ASSERT_TRUE(e.target());
   Pose target = e.target()->T_cam_board;
   e.report_pose_reached();
@@ -158,7 +165,7 @@ TEST(Engine, FullRunVisitsEveryStateAndEmitsEvents) {
   o.robot = true;
   CalibrationEngine e(rig.truth.size(), o);
   rig.listen(e);
-  e.process(rig.camera.render(board_pose_at(rig.target, Eigen::Vector3d(0, 0, 0.5), 0, 0, 0)));
+  present_start_view(e, rig);
   int guard = 0;
   while (e.state() != EngineState::kConverged && e.state() != EngineState::kFailed && guard++ < 40) {
     ASSERT_TRUE(e.target());
@@ -194,7 +201,7 @@ TEST(Engine, KeyframeCapEndsAsFailedButKeepsTheResult) {
   o.max_keyframes = 3;
   CalibrationEngine e(rig.truth.size(), o);
   rig.listen(e);
-  e.process(rig.camera.render(board_pose_at(rig.target, Eigen::Vector3d(0, 0, 0.5), 0, 0, 0)));
+  present_start_view(e, rig);
   for (int k = 0; k < 6 && e.state() != EngineState::kFailed; ++k) {
     ASSERT_TRUE(e.target());
     hold_until_capture(e, rig.camera, e.target()->T_cam_board, true, 12);
@@ -213,7 +220,7 @@ TEST(Engine, DegenerateKeyframeIsRejectedAndTheTargetKept) {
   o.robot = true;
   CalibrationEngine e(rig.truth.size(), o);
   rig.listen(e);
-  e.process(rig.camera.render(board_pose_at(rig.target, Eigen::Vector3d(0, 0, 0.5), 0, 0, 0)));
+  present_start_view(e, rig);
   ASSERT_TRUE(e.target());
   // Keyframe 1 at the first target (after the robot bootstrap settles the target).
   Pose first;
@@ -278,7 +285,7 @@ TEST(Engine, OverlayDrawsTheTarget) {
   EngineOptions o;
   o.robot = true;
   CalibrationEngine e(rig.truth.size(), o);
-  e.process(rig.camera.render(board_pose_at(rig.target, Eigen::Vector3d(0, 0, 0.5), 0, 0, 0)));
+  present_start_view(e, rig);
   ASSERT_TRUE(e.target());
   cv::Mat img(720, 1280, CV_8UC3, cv::Scalar(0, 0, 0));
   e.draw_overlay(img);

@@ -108,13 +108,15 @@ TEST(PoseGen, DistortionPosesVisitRegionsStrongestFirstAndMaskThem) {
   const CameraModel cam = CameraModel::opencv5(1280, 720, 1000, 1000, 760, 359.5, {-0.25, 0.05, 0, 0, 0});
   const Target t;
   PoseGenerator pg(t, cam.size());
-  const cv::Mat dmap = cam.distortion_map(10);
+  const int step = PoseGenOptions{}.distortion_map_step_px;
+  const cv::Mat dmap = cam.distortion_map(step);
   std::vector<double> strength;
   for (int k = 0; k < 4; ++k) {
     const TargetPose p = pg.next_pose(4, cam);
     ASSERT_EQ(p.kind, "distortion") << k;
     // Mean displacement inside the region this pose samples.
-    const cv::Rect cells(p.region.x / 10, p.region.y / 10, std::max(1, p.region.width / 10), std::max(1, p.region.height / 10));
+    const cv::Rect cells(p.region.x / step, p.region.y / step, std::max(1, p.region.width / step),
+                         std::max(1, p.region.height / step));
     double mx = 0;
     cv::minMaxLoc(dmap(cells & cv::Rect(0, 0, dmap.cols, dmap.rows)), nullptr, &mx);
     strength.push_back(mx);

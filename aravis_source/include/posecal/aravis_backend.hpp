@@ -7,8 +7,9 @@
 // The query options are fields of AravisBackendOptions below, by the same names (packet_size,
 // packet_resend=always|never, socket_buffer_size, packet_timeout_us, frame_retention_us,
 // packet_socket=0|1, extra_buffers, max_lent_buffers, zero_copy=0|1, frame_timeout_ms,
-// probe_timeout_ms, probe_retries, auto_reconnect=0|1); they override the backend's defaults
-// for that one camera. docs/aravis.md describes the threads, the frame path, disconnect
+// idle_probe_interval_ms, probe_timeout_ms, probe_retries, auto_reconnect=0|1,
+// reconnect_min_backoff_ms, reconnect_max_backoff_ms); they override the backend's defaults for
+// that one camera. docs/aravis.md describes the threads, the frame path, disconnect
 // detection and reconnection.
 #pragma once
 
@@ -28,8 +29,10 @@ struct AravisBackendOptions {
   // Ask the camera to resend lost packets (ARV_GV_STREAM_PACKET_RESEND_ALWAYS) or not (NEVER).
   // Either way a frame that is still incomplete is counted in frames_incomplete and dropped.
   bool packet_resend = true;
-  // Kernel receive buffer of the stream socket in bytes; 0 lets Aravis size it from the payload
-  // (ARV_GV_STREAM_SOCKET_BUFFER_AUTO).
+  // Kernel receive buffer of the stream's UDP socket in bytes; 0 sizes it for four frames. The
+  // kernel caps it at net.core.rmem_max (208 KiB on a stock Linux: raise it for GigE cameras).
+  // Aravis' own choice (one payload) loses most frames of a 1280x720 camera at 30 Hz with
+  // 8000-byte packets over loopback (docs/aravis.md).
   int socket_buffer_size = 0;
   // arv_gv_stream "packet-timeout" (wait before requesting a resend) and "frame-retention"
   // (give up on an incomplete frame), microseconds.
@@ -72,20 +75,20 @@ struct AravisBackendOptions {
 
 // Transport counters of an open Aravis camera (for diagnostics and tests).
 struct AravisTransportStats {
-  std::string protocol;         // "GigE Vision", "USB3 Vision"
-  std::string device_address;   // IPv4 address of a GigE Vision camera, else ""
-  unsigned packet_size = 0;     // current GVSP packet size (GigE Vision, 0 otherwise)
-  bool packet_resend = false;   // resend policy of the current stream
+  std::string protocol;        // "GigE Vision", "USB3 Vision"
+  std::string device_address;  // IPv4 address of a GigE Vision camera, else ""
+  unsigned packet_size = 0;    // current GVSP packet size (GigE Vision, 0 otherwise)
+  bool packet_resend = false;  // resend policy of the current stream
   // Aravis' stream statistics, since the current stream was created.
   uint64_t completed_buffers = 0;
   uint64_t failed_buffers = 0;
   uint64_t underruns = 0;
   uint64_t resent_packets = 0;   // GigE Vision only
   uint64_t missing_packets = 0;  // GigE Vision only
-  // Frames handed out without a copy / copied because max_lent_buffers were out, since open.
+  // Frames handed out without a copy / copied (lending off or max_lent_buffers out), since open.
   uint64_t frames_zero_copy = 0;
   uint64_t frames_copied = 0;
-  int buffers_lent = 0;          // lent frames still held by the consumer
+  int buffers_lent = 0;  // lent frames still held by the consumer
   uint64_t reconnects = 0;
 };
 

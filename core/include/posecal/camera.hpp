@@ -14,7 +14,9 @@
 //   Opened --configure()--> Configured --start()--> Streaming --stop()--> Configured
 //      ^                                               |
 //      +------------- disconnect (any state) ----> Disconnected (only close/stats/info allowed;
-//                                                   a backend may reconnect -> Configured)
+//                                                   a backend that reconnects by itself returns
+//                                                   to the state before the disconnect, so a
+//                                                   streaming session resumes; Aravis does)
 //
 // Threading: a Camera is used from one thread at a time (the session's). Backends may run
 // their own threads (Aravis' stream thread, libusb's hot-plug thread); the event callback is

@@ -45,10 +45,14 @@ struct EngineOptions {
   int target_timeout_frames = 0;         // > 0: skip a refinement target after this many frames
   int bootstrap_min_corners = 0;         // 0: half the board's corners (reference implementation)
   // A bootstrap is accepted only if its focal length is determined to this relative standard
-  // deviation at 1 px noise; among accepted ones the lowest residual wins (paper §3.4). A nearly
+  // deviation (at the measured noise, at least 0.1 px); among accepted ones the lowest residual
+  // wins (paper §3.4). A nearly
   // fronto-parallel view fits any focal length with a low residual, so the residual alone would
   // prefer exactly the views that cannot tell f (docs/pose-selection.md).
   double bootstrap_max_relative_std = 0.05;
+  // ... and only if moving the assumed principal point by 5% of the image changes f by less than
+  // this fraction (a weak view turns the unknown principal point into a biased f).
+  double bootstrap_max_pp_sensitivity = 0.2;
   double initial_focal_guess = 0.0;      // f before any estimate; 0: max(width, height)
   // Refinement targets: 1 = the paper's rule (next sequence element / most distorted region);
   // n > 1 = the best of the first n rule-generated candidates by predicted variance of the

@@ -28,7 +28,7 @@ struct PoseGenOptions {
   double distortion_width_fraction = 0.33;  // C_Delta board width / image width (paper §3.3)
   double distortion_threshold_step = 0.05;  // threshold decrements over the normalised map
   double mask_max_overlap = 0.9;   // a region whose box is this much masked is skipped
-  int distortion_map_step_px = 10; // distortion map sampling
+  int distortion_map_step_px = 20; // distortion map sampling (reference implementation: 20)
   // Margin kept between any target board and the image border, fraction of the image size.
   // The paper clips C_Delta boards to the image (margin 0); a small margin keeps a board the
   // operator places a little off target fully visible (docs/pose-selection.md).

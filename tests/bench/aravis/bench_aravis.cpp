@@ -7,7 +7,8 @@
 // and sending the packets) is not counted; --in-process puts it in this process instead.
 //
 //   bench_aravis [--seconds 3] [--runs 5] [--width 1280] [--height 720] [--format Mono8]
-//                [--fps 1000] [--packet-size 0] [--copy] [--udp-socket] [--in-process]
+//                [--fps 1000] [--packet-size 0] [--socket-buffer 0] [--copy] [--udp-socket]
+//                [--in-process]
 //
 // Prints one line per run and the medians. docs/aravis.md records the figures.
 #include <arv.h>
@@ -43,6 +44,7 @@ struct Args {
   std::string format = "Mono8";
   double fps = 1000;  // the simulator's maximum: it sends as fast as it can
   int packet_size = 0;
+  int socket_buffer = 0;  // bytes, 0: the backend default (four frames)
   bool copy = false;
   bool in_process = false;
   bool udp_socket = false;  // disable Aravis' packet socket
@@ -68,13 +70,17 @@ double process_cpu_seconds(pid_t pid) {
   if (p == nullptr) return 0;
   unsigned long utime = 0, stime = 0;
   // Fields after ") ": state(3) ... utime(14) stime(15).
-  if (std::sscanf(p + 2, "%*c %*d %*d %*d %*d %*d %*u %*u %*u %*u %*u %lu %lu", &utime, &stime) != 2) return 0;
+  if (std::sscanf(p + 2, "%*c %*d %*d %*d %*d %*d %*u %*u %*u %*u %*u %lu %lu", &utime, &stime) !=
+      2)
+    return 0;
   return static_cast<double>(utime + stime) / static_cast<double>(sysconf(_SC_CLK_TCK));
 }
 
 double median(std::vector<double> v) {
   std::sort(v.begin(), v.end());
-  return v.empty() ? 0 : (v.size() % 2 ? v[v.size() / 2] : 0.5 * (v[v.size() / 2 - 1] + v[v.size() / 2]));
+  return v.empty()
+             ? 0
+             : (v.size() % 2 ? v[v.size() / 2] : 0.5 * (v[v.size() / 2 - 1] + v[v.size() / 2]));
 }
 
 bool parse(int argc, char** argv, Args* a) {
@@ -104,11 +110,14 @@ bool parse(int argc, char** argv, Args* a) {
       a->fps = std::atof(v);
     } else if (k == "--packet-size") {
       a->packet_size = std::atoi(v);
+    } else if (k == "--socket-buffer") {
+      a->socket_buffer = std::atoi(v);
     } else {
       return false;
     }
   }
-  return a->seconds > 0 && a->runs > 0 && pixel_format_from_name(a->format) != PixelFormat::kUnknown;
+  return a->seconds > 0 && a->runs > 0 &&
+         pixel_format_from_name(a->format) != PixelFormat::kUnknown;
 }
 
 }  // namespace
@@ -116,10 +125,12 @@ bool parse(int argc, char** argv, Args* a) {
 int main(int argc, char** argv) {
   Args args;
   if (!parse(argc, argv, &args)) {
-    std::fprintf(stderr,
-                 "usage: bench_aravis [--seconds S] [--runs N] [--width W] [--height H] "
-                 "[--format Mono8|Mono16|RGB8|BayerRG8] [--fps F] [--packet-size B] [--copy] "
-                 "[--udp-socket] [--in-process]\n");
+    std::fprintf(
+        stderr,
+        "usage: bench_aravis [--seconds S] [--runs N] [--width W] [--height H] "
+        "[--format Mono8|Mono16|RGB8|BayerRG8] [--fps F] [--packet-size B] [--socket-buffer B] "
+        "[--copy] "
+        "[--udp-socket] [--in-process]\n");
     return 2;
   }
 
@@ -133,9 +144,12 @@ int main(int argc, char** argv) {
       return 1;
     }
   } else {
-    const char* sim_argv[] = {"arv-fake-gv-camera-0.8", "-i", "127.0.0.1", "-s", "PCALBENCH", nullptr};
-    if (posix_spawnp(&sim_pid, sim_argv[0], nullptr, nullptr, const_cast<char**>(sim_argv), environ) != 0) {
-      std::fprintf(stderr, "cannot start arv-fake-gv-camera-0.8 (aravis-tools); try --in-process\n");
+    const char* sim_argv[] = {
+        "arv-fake-gv-camera-0.8", "-i", "127.0.0.1", "-s", "PCALBENCH", nullptr};
+    if (posix_spawnp(&sim_pid, sim_argv[0], nullptr, nullptr, const_cast<char**>(sim_argv),
+                     environ) != 0) {
+      std::fprintf(stderr,
+                   "cannot start arv-fake-gv-camera-0.8 (aravis-tools); try --in-process\n");
       return 1;
     }
   }
@@ -145,14 +159,17 @@ int main(int argc, char** argv) {
   options.zero_copy = !args.copy;
   options.packet_size = args.packet_size;
   options.packet_socket = !args.udp_socket;
+  options.socket_buffer_size = args.socket_buffer;
   manager.add_backend(make_aravis_backend(options));
 
-  std::printf("# %dx%d %s, requested %.0f fps, packet size %s, %s, %s, simulator %s\n",
-              args.width, args.height, args.format.c_str(), args.fps,
-              args.packet_size ? std::to_string(args.packet_size).c_str() : "camera default",
-              args.copy ? "copying Mono8" : "zero-copy Mono8",
-              args.udp_socket ? "UDP socket" : "packet socket if permitted",
-              args.in_process ? "in this process (its CPU is counted)" : "in its own process");
+  std::printf(
+      "# %dx%d %s, requested %.0f fps, packet size %s, socket buffer %s, %s, %s, simulator %s\n",
+      args.width, args.height, args.format.c_str(), args.fps,
+      args.packet_size ? std::to_string(args.packet_size).c_str() : "camera default",
+      args.socket_buffer ? std::to_string(args.socket_buffer).c_str() : "4 frames",
+      args.copy ? "copying Mono8" : "zero-copy Mono8",
+      args.udp_socket ? "UDP socket" : "packet socket if permitted",
+      args.in_process ? "in this process (its CPU is counted)" : "in its own process");
   std::vector<double> fps_runs, cpu_runs, cpu_pct_runs;
   int status = 0;
   try {
@@ -162,7 +179,8 @@ int main(int argc, char** argv) {
       try {
         cam = manager.open("aravis://127.0.0.1");
       } catch (const Error& e) {
-        if (e.code() != ErrorCode::kNotFound || Clock::now() - t_open > std::chrono::seconds(10)) throw;
+        if (e.code() != ErrorCode::kNotFound || Clock::now() - t_open > std::chrono::seconds(10))
+          throw;
         std::this_thread::sleep_for(std::chrono::milliseconds(100));
       }
     }
