@@ -4,6 +4,7 @@
 
 #include <Eigen/Dense>
 #include <ctime>
+#include <fstream>
 #include <limits>
 #include <opencv2/core/persistence.hpp>
 
@@ -323,6 +324,8 @@ cv::Mat CameraModel::distortion_map(int step) const {
 }
 
 CameraModel read_camera_model(const std::string& path) {
+  // Checked here so OpenCV does not log its own error into the host's stderr.
+  if (!std::ifstream(path).good()) throw Error(ErrorCode::kIo, "cannot open camera model file '" + path + "'");
   cv::FileStorage fs;
   try {
     if (!fs.open(path, cv::FileStorage::READ)) {
