@@ -192,8 +192,10 @@ CameraModel sample_camera(const CameraModel& reference, double rel_std, uint64_t
 std::vector<Observation> render_test_set(SyntheticCamera& camera, int count) {
   std::vector<Observation> out;
   for (const Pose& p : test_set_views(camera.model(), camera.target(), count)) {
+    // A test frame must determine its pose: at least half the board (a handful of corners on
+    // one row at the border gave PnP nothing to hold on to and a 1150 px "test error").
     const Detection d = camera.target().detect(camera.render(p));
-    if (d.size() >= 6) out.push_back(Observation::from(d));
+    if (static_cast<int>(d.size()) >= camera.target().num_corners() / 2) out.push_back(Observation::from(d));
   }
   return out;
 }

@@ -103,7 +103,8 @@ struct SimEvaluation {
   int test_frames = 0;
   double eps_gt = -1;
 };
-// Renders the fixed test set (test_set_views) with `camera` and detects it.
+// Renders the fixed test set (test_set_views) with `camera` and detects it; frames where less
+// than half the board is detected are left out.
 std::vector<Observation> render_test_set(SyntheticCamera& camera, int count = 50);
 SimEvaluation evaluate_synthetic(const CameraModel& estimate, const CameraModel& truth,
                                  const std::vector<Observation>& test_set);
