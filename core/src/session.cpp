@@ -71,9 +71,17 @@ double CalibrationSession::wall_ms() const {
 }
 
 FrameReport CalibrationSession::feed(const cv::Mat& image) {
+  // A host frame is the caller's only for this call: last_frame() keeps a copy.
+  return process(image.clone(), nullptr);
+}
+
+FrameReport CalibrationSession::process(const cv::Mat& image, std::shared_ptr<void> hold) {
   if (finished()) throw Error(ErrorCode::kState, "session: calibration already finished");
   ensure_engine(image.size());
+  // Camera frames may point into a backend buffer (zero-copy Aravis frames): keep the buffer
+  // alive as long as last_frame() refers to it.
   last_frame_ = image;
+  last_hold_ = std::move(hold);
   ++frames_;
   const FrameReport r = engine_->process(image);
   camera_->guide(engine_->guidance_info());
@@ -125,7 +133,7 @@ StepStatus CalibrationSession::step(int timeout_ms) {
     disconnected_ = false;
     emit({SessionEvent::Kind::kCameraReconnected, std::nullopt, "camera '" + camera_->info().uri + "' is back"});
   }
-  feed(frame.image);
+  process(frame.image, frame.hold);
   return StepStatus::kFrame;
 }
 

@@ -1,21 +1,39 @@
 /*
  * posecal.h - C ABI of libposecal.so, camera calibration with efficient pose selection.
  *
- * Conventions (see docs/c-api.md):
- *  - Plain C99; compiles as C and C++. Every symbol starts with posecal_ / POSECAL_.
- *  - Opaque handles. Every create has a destroy that accepts NULL.
+ * Conventions (docs/c-api.md has the details, the JSON schemas and a complete example):
+ *  - Plain C99; compiles as C and C++. Every symbol starts with posecal_ / POSECAL_; the library
+ *    exports nothing else.
+ *  - Opaque handles. Every create/open has a destroy/close that accepts NULL. A handle belongs to
+ *    the caller from the create until the destroy; the library keeps no pointer to caller memory
+ *    beyond a call (callback user_data excepted, until the callback is replaced or the session
+ *    closed). Strings the library returns are in static storage or valid until the next posecal
+ *    call on the same thread, as each function says.
  *  - Every function returns a posecal_status (or a value that cannot fail). On failure,
- *    posecal_last_error() returns the message of the last failure on the calling thread.
- *    No C++ exception ever crosses this interface.
+ *    posecal_last_error() returns a non-empty message for the last failure on the calling thread.
+ *    No C++ exception ever crosses this interface: every entry point is noexcept.
+ *  - NULL where a handle or pointer is required: POSECAL_E_INVALID_ARGUMENT naming the argument.
+ *    Output handles (`out`) are set to NULL first, so they are NULL after any failure.
  *  - Strings are UTF-8, NUL-terminated. JSON-returning calls: *size is the buffer's capacity on
  *    entry; on return it holds the length needed including the terminating NUL. A NULL or too
- *    small buffer gives POSECAL_E_BUFFER_TOO_SMALL with *size set (nothing else changes).
- *  - Threads: different handles may be used on different threads concurrently. One handle is
- *    not to be used from two threads at the same time unless a function says otherwise.
- *  - Blocking: a call blocks at most as long as its timeout argument says, or as its
- *    documentation says; nothing waits forever.
+ *    small buffer gives POSECAL_E_BUFFER_TOO_SMALL with *size set and the buffer untouched.
+ *    Calls that do work once (list, features, grab, evaluate) keep their JSON when the buffer is
+ *    too small: the next call of the same function with the same arguments on the same thread
+ *    and context returns it without doing the work again.
+ *  - JSON options/configs: NULL or "" for defaults, else an object. An unknown key, a wrong type
+ *    or a value out of range is POSECAL_E_INVALID_ARGUMENT naming the key.
+ *  - Threads: a posecal_context is thread-safe: its functions may be called from several threads
+ *    at once, and sessions opened on it may run concurrently, each on its own thread. A session
+ *    (and a posecal_calibration) is used by one thread at a time: it may move between threads,
+ *    but two calls on the same session must never overlap. A context may be destroyed while
+ *    sessions opened on it are open: they keep what they need until they are closed.
+ *  - Blocking: no call waits forever. Calls that wait for a camera take a timeout; the others
+ *    compute, and their documentation says for how long they typically run.
  *  - Board frame: that of OpenCV 4.6's CharucoBoard object points (origin at the board's
  *    top-left corner, x along the columns, y down the rows, z into the board), metres.
+ *  - Versioning: POSECAL_ABI_VERSION changes on any incompatible change of this header; new
+ *    functions may be added within a version. Struct layouts are frozen (posecal_image may only
+ *    grow at its end: hosts set struct_size).
  */
 #ifndef POSECAL_H
 #define POSECAL_H
@@ -46,7 +64,7 @@ extern "C" {
 typedef enum posecal_status {
   POSECAL_OK = 0,
   POSECAL_E_INVALID_ARGUMENT = 1, /* NULL where not allowed, malformed JSON/spec, bad value */
-  POSECAL_E_NOT_FOUND = 2,        /* camera, file, feature or JSON key that does not exist */
+  POSECAL_E_NOT_FOUND = 2,        /* camera, file, feature or frame that does not exist */
   POSECAL_E_BUFFER_TOO_SMALL = 3, /* *size says how much is needed */
   POSECAL_E_TIMEOUT = 4,          /* no frame within the timeout */
   POSECAL_E_DEVICE = 5,           /* camera failed or disconnected */
@@ -54,37 +72,80 @@ typedef enum posecal_status {
   POSECAL_E_IO = 7,               /* file could not be read or written */
   POSECAL_E_INTERNAL = 8,         /* a bug in posecal: please report the message */
   POSECAL_E_DEGENERATE = 9,       /* the data cannot determine the calibration */
-  POSECAL_E_UNSUPPORTED = 10      /* valid request this build or camera cannot do */
+  POSECAL_E_UNSUPPORTED = 10      /* valid request this build, context or camera cannot do */
 } posecal_status;
 
-/* Returns POSECAL_ABI_VERSION of the library (compare with the header's). */
+/* Returns POSECAL_ABI_VERSION of the library (compare with the header's). Any thread. */
 POSECAL_API unsigned posecal_abi_version(void) POSECAL_NOEXCEPT;
-/* Library version, e.g. "0.1.0". Static storage. */
+/* Library version, e.g. "0.1.0". Static storage. Any thread. */
 POSECAL_API const char* posecal_version(void) POSECAL_NOEXCEPT;
-/* Message of the last failure on the calling thread ("" if none). Valid until the next posecal
- * call on this thread. */
+/* Message of the last failure on the calling thread ("" after a success). Valid until the next
+ * posecal call on this thread. */
 POSECAL_API const char* posecal_last_error(void) POSECAL_NOEXCEPT;
-/* Name of a status code, e.g. "POSECAL_E_TIMEOUT". Static storage. */
+/* Name of a status code, e.g. "POSECAL_E_TIMEOUT" ("POSECAL_E_UNKNOWN" for other values).
+ * Static storage. Any thread. */
 POSECAL_API const char* posecal_status_name(posecal_status status) POSECAL_NOEXCEPT;
 
-/* ---- Context: camera backends and defaults, shared by sessions ---------------------------- */
+/* ---- Context: camera backends, shared by sessions ------------------------------------------ */
 typedef struct posecal_context posecal_context;
 
 /* options_json: NULL for defaults, or an object with optional keys
- *   "backends": ["sim", "images", "external", "aravis", "v4l2"]   (which to enable)
- * An unknown key is POSECAL_E_INVALID_ARGUMENT. */
+ *   "backends": ["sim", "images", "external", "aravis", "v4l2"]   (which to enable; default all)
+ * A URI of a backend that is not enabled is POSECAL_E_UNSUPPORTED. Does not touch hardware. */
 POSECAL_API posecal_status posecal_context_create(const char* options_json,
                                                   posecal_context** out) POSECAL_NOEXCEPT;
+/* NULL-tolerant. Sessions still open on the context stay usable until they are closed. */
 POSECAL_API void posecal_context_destroy(posecal_context* ctx) POSECAL_NOEXCEPT;
 
 /* JSON array of every camera of every enabled backend: objects with "uri", "backend", "id",
- * "vendor", "model", "serial", "transport". May block up to ~1 s while backends scan. */
+ * "vendor", "model", "serial", "transport". A backend that fails to scan is left out. Blocks up
+ * to ~1 s while backends scan (GigE Vision discovery). */
 POSECAL_API posecal_status posecal_list_cameras(posecal_context* ctx, char* buf,
                                                 size_t* size) POSECAL_NOEXCEPT;
 
+/* JSON array of the camera's settings (GenICam features, V4L2 controls, sim:// parameters):
+ * objects with "name", "type" ("integer", "float", "boolean", "enumeration", "string",
+ * "command", ...), "value" (typed where it parses; null if not readable), "access"
+ * ("read-write", "read-only", "write-only", "none"), "unit" (null if none), "range"
+ * ({"min", "max"} or null), "options" (enumeration entries or null). Opens the camera for the
+ * duration of the call (up to ~3 s for a network camera) without streaming. */
+POSECAL_API posecal_status posecal_camera_features(posecal_context* ctx, const char* camera_uri,
+                                                   char* buf, size_t* size) POSECAL_NOEXCEPT;
+
+/* Grabs `count` frames (1..100000) and saves them as out_dir/frame_00000.png, ... (8-bit grey
+ * or BGR as the camera delivers them for calibration; out_dir is created if missing). Returns
+ * JSON {"camera", "out_dir", "files": [{"file", "frame_id", "timestamp_ns", "width", "height",
+ * "channels", "source_format"}], "frames_dropped", "frames_incomplete", "wall_ms"}.
+ * timeout_ms (1..600000) bounds the whole grab after the camera is open: POSECAL_E_TIMEOUT if
+ * the frames did not all arrive in time, POSECAL_E_NOT_FOUND if a finite source (images://)
+ * ended, POSECAL_E_DEVICE on a disconnect; the files saved until then stay, and the message says
+ * how many. */
+POSECAL_API posecal_status posecal_camera_grab(posecal_context* ctx, const char* camera_uri,
+                                               int count, const char* out_dir, int timeout_ms,
+                                               char* buf, size_t* size) POSECAL_NOEXCEPT;
+
+/* Test-set error of an existing calibration file (OpenCV YAML/JSON as posecal writes it):
+ * every test frame's board pose is refitted by PnP with the file's intrinsics and eps_test is the
+ * RMS reprojection error over all test points (the paper's estimation error).
+ *  - sim:// cameras: the fixed 50-frame test set of that simulated camera (the same frames its
+ *    sessions' results use), plus "eps_gt" against its ground truth. Computation only, ~1-2 s.
+ *  - other cameras: the first "frames" frames that show at least "min_corners" corners of the
+ *    board; waits at most "timeout_ms" for them (POSECAL_E_TIMEOUT if none came; fewer frames
+ *    are used if the time runs out or a finite source ends).
+ * options_json: NULL or an object with optional keys "target" (spec, default the ChArUco board),
+ * "frames" (1..1000, 20), "min_corners" (4.., 6), "timeout_ms" (1..600000, 30000).
+ * Returns JSON {"result_file", "camera", "target", "source" ("sim_test_set" | "camera"),
+ * "frames_seen", "frames_collected", "eps_test", "test_frames", "test_frames_failed",
+ * "test_points", "eps_gt" (null unless sim://), "ground_truth" (sim:// only), "model",
+ * "image_width", "image_height", "wall_ms"}. POSECAL_E_INVALID_ARGUMENT if the file's image size
+ * is not the camera's. */
+POSECAL_API posecal_status posecal_evaluate(posecal_context* ctx, const char* result_path,
+                                            const char* camera_uri, const char* options_json,
+                                            char* buf, size_t* size) POSECAL_NOEXCEPT;
+
 /* ---- Printable targets -------------------------------------------------------------------- */
 /* Writes the target (spec like "charuco:9x6:0.028:0.0182:DICT_4X4_50"; NULL = default) at exact
- * physical scale: vector PDF or PNG at `dpi`, chosen by the extension of `path`. */
+ * physical scale: vector PDF or PNG at `dpi`, chosen by the extension of `path`. Any thread. */
 POSECAL_API posecal_status posecal_write_target(const char* target_spec, const char* path,
                                                 double dpi, double margin_m) POSECAL_NOEXCEPT;
 
@@ -93,8 +154,9 @@ typedef struct posecal_calibration posecal_calibration;
 
 /* Calibrates from every image of `images_dir` (name order). options_json: NULL or an object
  * with optional keys "fix_principal_point", "fix_aspect_ratio", "zero_tangential" (bool),
- * "fixed" (array of parameter names), "min_corners" (int). Unreadable images and images without
- * the target are listed in the result, not fatal. Blocks for the whole calibration. */
+ * "fixed" (array of parameter names), "min_corners" (int >= 4). Unreadable images and images
+ * without the target are listed in the result, not fatal. Blocks for the whole calibration
+ * (detection ~50 ms per image plus a solve of well under a second for 20 images). */
 POSECAL_API posecal_status posecal_calibrate_images(posecal_context* ctx, const char* images_dir,
                                                     const char* target_spec,
                                                     const char* options_json,
@@ -110,6 +172,9 @@ POSECAL_API posecal_status posecal_calibration_save(const posecal_calibration* c
 POSECAL_API void posecal_calibration_destroy(posecal_calibration* cal) POSECAL_NOEXCEPT;
 
 /* ---- Calibration sessions: one camera, one pose-selection engine --------------------------- */
+/* States (docs/c-api.md draws them): opened -> running (engine states "waiting_for_board",
+ * "bootstrapping", "initial_pose_1", "initial_pose_2", "refining") -> finished ("converged" or
+ * "failed"). Calls not allowed in a state return POSECAL_E_STATE and change nothing. */
 typedef struct posecal_session posecal_session;
 
 typedef enum posecal_pixel_format {
@@ -119,7 +184,9 @@ typedef enum posecal_pixel_format {
 } posecal_pixel_format;
 
 /* A host image. struct_size = sizeof(posecal_image), set by the caller, so the struct can grow
- * in later ABI versions. The library never keeps `data` beyond the call. */
+ * in later ABI versions. width, height in 1..65535; stride_bytes >= width x bytes per pixel.
+ * The library never keeps `data` beyond the call. The layout is frozen (static_asserts in
+ * plugin/src/abi_layout.cpp). */
 typedef struct posecal_image {
   uint32_t struct_size;
   int32_t width;
@@ -135,60 +202,83 @@ typedef struct posecal_image {
  *   "operator": "person" | "robot"   (robot: the host reports poses reached),
  *   "convergence_threshold" (0.1), "max_keyframes" (20), "jaccard_threshold" (0.8),
  *   "still_motion_px" (1.5), "constraint_factor" (5), "target_timeout_frames" (0 = never),
- *   "pose_candidates" (int), "lock_settings" (true), "max_tilt_deg" (70)
- * An unknown key is POSECAL_E_INVALID_ARGUMENT. Opening a camera may block up to ~3 s. */
+ *   "pose_candidates" (6), "lock_settings" (true), "max_tilt_deg" (70)
+ * An unknown key is POSECAL_E_INVALID_ARGUMENT. Opening a camera may block up to ~3 s. The
+ * camera starts streaming at the first posecal_session_step. */
 POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char* camera_uri,
                                                 const char* config_json,
                                                 posecal_session** out) POSECAL_NOEXCEPT;
-/* Stops the camera and frees the session. NULL-tolerant. Must not be called from the session's
- * own event callback. */
+/* Stops the camera and frees the session. NULL-tolerant. Called from the session's own event
+ * callback it does nothing (posecal_last_error says so). */
 POSECAL_API void posecal_session_close(posecal_session* session) POSECAL_NOEXCEPT;
 
-/* Takes one frame from the session's camera (waiting at most timeout_ms) and advances the state
- * machine. POSECAL_OK: a frame was processed. POSECAL_E_TIMEOUT: no frame in time.
+/* Takes one frame from the session's camera (waiting at most timeout_ms, 0..600000) and
+ * advances the state machine; the frame's processing (board detection, and after a capture a
+ * recalibration) adds typically 10-100 ms, up to ~1 s for a recalibration with many keyframes.
+ * POSECAL_OK: a frame was processed. POSECAL_E_TIMEOUT: no frame in time.
  * POSECAL_E_DEVICE: the camera is disconnected (keyframes are kept; keep stepping to resume when
- * it is back). POSECAL_E_STATE: the calibration has finished, or an "external" session (use
- * posecal_session_feed). POSECAL_E_NOT_FOUND: a finite source (images://) has no more frames. */
+ * it is back). POSECAL_E_STATE: the calibration has finished, an "external" session (use
+ * posecal_session_feed), or called from the event callback. POSECAL_E_NOT_FOUND: a finite
+ * source (images://) has no more frames. */
 POSECAL_API posecal_status posecal_session_step(posecal_session* session,
                                                 int timeout_ms) POSECAL_NOEXCEPT;
-/* Processes a host frame synchronously (the state machine has advanced when it returns). For
- * any session; "external" sessions get frames only this way. */
+/* Processes a host frame synchronously (the state machine has advanced when it returns; same
+ * cost as a step without the wait). For any session; "external" sessions get frames only this
+ * way. All frames of a session must have the same size. POSECAL_E_STATE once finished. */
 POSECAL_API posecal_status posecal_session_feed(posecal_session* session,
                                                 const posecal_image* image) POSECAL_NOEXCEPT;
 
-/* Current status JSON: "state", "converged", "keyframes", "target_parameter", "guidance",
- * "jaccard", "still", "board_visible", "corners", "image_width", "image_height", "frames",
- * "camera", "parameters": {"fx": {"value", "std", "converged"}, ...}. */
+/* Current status JSON: "state", "finished", "converged", "keyframes", "target_parameter",
+ * "guidance", "has_target", "jaccard", "still", "motion_px", "board_visible", "corners",
+ * "corners_required", "pose_reached", "captured", "image_width", "image_height", "frames",
+ * "camera_connected", "camera", "parameters": {"fx": {"value", "std", "converged"}, ...}.
+ * Allowed in the event callback. */
 POSECAL_API posecal_status posecal_session_status(posecal_session* session, char* buf,
                                                   size_t* size) POSECAL_NOEXCEPT;
 /* The board pose to reach: rotation vector and translation (metres) of the board frame in the
- * camera frame. POSECAL_E_STATE when there is no target (before the first frame, or finished). */
+ * camera frame. POSECAL_E_STATE when there is no target (before the first frame or the board,
+ * or finished). Allowed in the event callback. */
 POSECAL_API posecal_status posecal_session_target_pose(posecal_session* session, double rvec[3],
                                                        double tvec[3]) POSECAL_NOEXCEPT;
 /* Robot mode: the robot has reached the current target; the session captures as soon as the
- * board is seen and still (the Jaccard check does not gate a robot's capture). */
+ * board is seen and still (the Jaccard check does not gate a robot's capture).
+ * POSECAL_E_STATE for a person session, without a target, or once finished. */
 POSECAL_API posecal_status posecal_session_pose_reached(posecal_session* session) POSECAL_NOEXCEPT;
+/* Gives up on the current refinement target (e.g. a robot cannot reach it) and generates the
+ * next one. POSECAL_E_STATE outside the refinement. */
+POSECAL_API posecal_status posecal_session_skip_target(posecal_session* session) POSECAL_NOEXCEPT;
+/* Copies the last processed frame into a host image of the camera's size, converted to the
+ * image's format. POSECAL_E_STATE before the first frame. */
+POSECAL_API posecal_status posecal_session_last_frame(posecal_session* session,
+                                                      posecal_image* out) POSECAL_NOEXCEPT;
 /* Draws the guidance overlay (target board, detected corners, text) into a host image of the
- * camera's size, in place. */
+ * camera's size, in place. POSECAL_E_STATE before the first frame. */
 POSECAL_API posecal_status posecal_session_render_overlay(posecal_session* session,
                                                           posecal_image* inout) POSECAL_NOEXCEPT;
-/* Result JSON: "converged", model values, "std", "std_unit", "covariance", "eps_res",
- * "keyframes", "camera" identity, "locked_settings", "started"/"finished" timestamps; for
- * sim:// cameras also "eps_test", "eps_gt" and the ground truth. POSECAL_E_STATE before the
- * second keyframe (no calibration yet). */
+/* Result JSON: "converged", "state", model values "fx" ... "k3", "std", "std_unit",
+ * "covariance", "eps_res", "keyframes", "frames_processed", "camera" identity, "target",
+ * "locked_settings", "parameter_converged", "started"/"finished" timestamps; for sim:// cameras
+ * also "eps_test", "eps_gt", "test_frames" and "ground_truth" (the first call after a new
+ * keyframe renders the test set: ~1 s). POSECAL_E_STATE before the second keyframe (no
+ * calibration yet). Allowed in the event callback. */
 POSECAL_API posecal_status posecal_session_result(posecal_session* session, char* buf,
                                                   size_t* size) POSECAL_NOEXCEPT;
-/* Saves the calibration: OpenCV YAML (.yml/.yaml) or JSON (.json) by extension. */
+/* Saves the calibration: OpenCV YAML (.yml/.yaml) or JSON (.json) by extension.
+ * POSECAL_E_STATE before the second keyframe. */
 POSECAL_API posecal_status posecal_session_save(posecal_session* session,
                                                 const char* path) POSECAL_NOEXCEPT;
 
 /* Events: called with a kind ("state_changed", "captured", "keyframe_rejected", "calibrated",
  * "parameter_converged", "target_changed", "target_skipped", "camera_disconnected",
- * "camera_reconnected", "error") and a JSON payload, on every state change, capture and error.
- * Called on the thread that is inside posecal_session_step/feed, before that call returns.
- * Inside the callback only posecal_session_status, posecal_session_target_pose and
- * posecal_last_error may be called on the same session. The strings are valid only during the
- * call. fn = NULL removes the callback. */
+ * "camera_reconnected", "error") and a JSON payload ({"keyframes", "frames", "message", and
+ * "from"/"to" for state_changed, "parameter" where one is concerned}).
+ * Thread: always the thread that is inside posecal_session_step or posecal_session_feed, before
+ * that call returns; never a library thread. Inside the callback only posecal_session_status,
+ * posecal_session_target_pose, posecal_session_result and posecal_last_error may be called on
+ * the same session (every other session call returns POSECAL_E_STATE); other sessions and
+ * contexts may be used as usual. The strings are valid only during the call. The callback must
+ * not throw (a C++ exception is caught and dropped) and should return quickly: the frame waits.
+ * fn = NULL removes the callback. Not allowed inside the callback. */
 typedef void (*posecal_event_fn)(void* user_data, const char* kind, const char* payload_json);
 POSECAL_API posecal_status posecal_session_set_callback(posecal_session* session,
                                                         posecal_event_fn fn,

@@ -9,10 +9,6 @@
 #include "posecal.h"
 #include "posecal/offline.hpp"
 
-namespace posecal::abi {
-const char* last_error();
-}
-
 using namespace posecal;
 using posecal::abi::guarded;
 using posecal::abi::require;
@@ -65,16 +61,15 @@ POSECAL_API posecal_status posecal_context_create(const char* options_json,
     require(out, "out");
     *out = nullptr;
     const auto opts = abi::parse_options(options_json, {"backends"}, "context options");
-    *out = new posecal_context(opts);
+    auto ctx = std::make_unique<posecal_context>();
+    ctx->impl = std::make_shared<abi::Context>(opts);
+    *out = ctx.release();
     return POSECAL_OK;
   });
 }
 
 POSECAL_API void posecal_context_destroy(posecal_context* ctx) noexcept {
-  guarded(__func__, [&] {
-    delete ctx;
-    return POSECAL_OK;
-  });
+  abi::guarded_void(__func__, [&] { delete ctx; });
 }
 
 POSECAL_API posecal_status posecal_list_cameras(posecal_context* ctx, char* buf,
@@ -82,9 +77,13 @@ POSECAL_API posecal_status posecal_list_cameras(posecal_context* ctx, char* buf,
   return guarded(__func__, [&] {
     require(ctx, "ctx");
     require(size, "size");
-    nlohmann::json arr = nlohmann::json::array();
-    for (const DeviceInfo& d : ctx->manager().list()) arr.push_back(abi::device_json(d));
-    return abi::copy_out(arr.dump(), buf, size);
+    std::string text;
+    if (!ctx->impl->take_pending(__func__, "", &text)) {
+      nlohmann::json arr = nlohmann::json::array();
+      for (const DeviceInfo& d : ctx->impl->list(nullptr)) arr.push_back(abi::device_json(d));
+      text = abi::to_text(arr);
+    }
+    return abi::copy_out_kept(*ctx->impl, __func__, "", text, buf, size);
   });
 }
 
@@ -111,13 +110,28 @@ POSECAL_API posecal_status posecal_calibrate_images(posecal_context* ctx, const 
         options_json,
         {"fix_principal_point", "fix_aspect_ratio", "zero_tangential", "fixed", "min_corners"},
         "calibration options");
+    const char* what = "calibration options";
     OfflineOptions o;
-    o.calibration.fix_principal_point = opts.value("fix_principal_point", false);
-    o.calibration.fix_aspect_ratio = opts.value("fix_aspect_ratio", false);
-    o.calibration.zero_tangential = opts.value("zero_tangential", false);
-    o.calibration.fixed = opts.value("fixed", std::vector<std::string>{});
-    o.min_corners = opts.value("min_corners", 6);
-    if (o.min_corners < 4) throw Error(ErrorCode::kInvalidArgument, "min_corners must be >= 4");
+    o.calibration.fix_principal_point = abi::get_bool(opts, "fix_principal_point", false, what);
+    o.calibration.fix_aspect_ratio = abi::get_bool(opts, "fix_aspect_ratio", false, what);
+    o.calibration.zero_tangential = abi::get_bool(opts, "zero_tangential", false, what);
+    if (opts.contains("fixed")) {
+      const auto& f = opts.at("fixed");
+      if (!f.is_array())
+        throw Error(ErrorCode::kInvalidArgument,
+                    "calibration options: 'fixed' must be an array of names");
+      for (const auto& name : f) {
+        if (!name.is_string()) {
+          throw Error(ErrorCode::kInvalidArgument,
+                      "calibration options: 'fixed' must be an array of names");
+        }
+        o.calibration.fixed.push_back(name.get<std::string>());
+      }
+    }
+    o.min_corners = abi::get_int(opts, "min_corners", 6, 4, 100000, what);
+    std::string why;
+    if (!o.calibration.is_valid(&why))
+      throw Error(ErrorCode::kInvalidArgument, std::string(what) + ": " + why);
     auto cal = std::make_unique<posecal_calibration>();
     cal->target = target_spec ? TargetSpec::parse(target_spec) : TargetSpec{};
     cal->images_dir = images_dir;
@@ -142,7 +156,7 @@ POSECAL_API posecal_status posecal_calibration_json(const posecal_calibration* c
     for (const auto& r : cal->offline.rejected)
       rej.push_back({{"file", r.file}, {"reason", r.reason}});
     j["rejected"] = rej;
-    return abi::copy_out(j.dump(), buf, size);
+    return abi::copy_out(abi::to_text(j), buf, size);
   });
 }
 
@@ -157,10 +171,7 @@ POSECAL_API posecal_status posecal_calibration_save(const posecal_calibration* c
 }
 
 POSECAL_API void posecal_calibration_destroy(posecal_calibration* cal) noexcept {
-  guarded(__func__, [&] {
-    delete cal;
-    return POSECAL_OK;
-  });
+  abi::guarded_void(__func__, [&] { delete cal; });
 }
 
 }  // extern "C"

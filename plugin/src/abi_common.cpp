@@ -1,13 +1,26 @@
 #include "abi_common.hpp"
 
 #include <algorithm>
+#include <cmath>
+#include <cstdio>
 #include <cstring>
 
 namespace posecal::abi {
 
 namespace {
 thread_local std::string t_last_error;
+
+[[noreturn]] void bad_option(const char* what, const char* key, const std::string& expected) {
+  throw Error(ErrorCode::kInvalidArgument,
+              std::string(what) + ": '" + key + "' must be " + expected);
 }
+
+std::string range_text(double lo, double hi) {
+  char buf[64];
+  std::snprintf(buf, sizeof buf, "[%g, %g]", lo, hi);
+  return buf;
+}
+}  // namespace
 
 void set_error(const std::string& message) { t_last_error = message; }
 void clear_error() { t_last_error.clear(); }
@@ -47,8 +60,10 @@ posecal_status copy_out(const std::string& text, char* buf, size_t* size) {
   require(size, "size");
   const size_t needed = text.size() + 1;
   if (buf == nullptr || *size < needed) {
+    const size_t given = *size;
     *size = needed;
-    set_error("buffer too small: " + std::to_string(needed) + " bytes needed");
+    set_error("buffer too small: " + std::to_string(needed) + " bytes needed, " +
+              (buf == nullptr ? std::string("buffer is NULL") : std::to_string(given) + " given"));
     return POSECAL_E_BUFFER_TOO_SMALL;
   }
   std::memcpy(buf, text.c_str(), needed);
@@ -76,6 +91,50 @@ nlohmann::json parse_options(const char* json_text, const std::vector<std::strin
     }
   }
   return j;
+}
+
+bool get_bool(const nlohmann::json& j, const char* key, bool def, const char* what) {
+  if (!j.contains(key)) return def;
+  const auto& v = j.at(key);
+  if (!v.is_boolean()) bad_option(what, key, "true or false");
+  return v.get<bool>();
+}
+
+int get_int(const nlohmann::json& j, const char* key, int def, int lo, int hi, const char* what) {
+  if (!j.contains(key)) return def;
+  const auto& v = j.at(key);
+  const std::string expected = "an integer in " + range_text(lo, hi);
+  if (!v.is_number_integer()) bad_option(what, key, expected);
+  const long long x = v.get<long long>();
+  if (x < lo || x > hi) bad_option(what, key, expected);
+  return static_cast<int>(x);
+}
+
+double get_double(const nlohmann::json& j, const char* key, double def, double lo, double hi,
+                  const char* what) {
+  if (!j.contains(key)) return def;
+  const auto& v = j.at(key);
+  const std::string expected = "a number in " + range_text(lo, hi);
+  if (!v.is_number()) bad_option(what, key, expected);
+  const double x = v.get<double>();
+  if (!(x >= lo && x <= hi)) bad_option(what, key, expected);
+  return x;
+}
+
+std::string get_string(const nlohmann::json& j, const char* key, const std::string& def,
+                       const char* what) {
+  if (!j.contains(key)) return def;
+  const auto& v = j.at(key);
+  if (!v.is_string()) bad_option(what, key, "a string");
+  return v.get<std::string>();
+}
+
+std::string to_text(const nlohmann::json& j) {
+  return j.dump(-1, ' ', false, nlohmann::json::error_handler_t::replace);
+}
+
+nlohmann::json number(double v) {
+  return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr);
 }
 
 }  // namespace posecal::abi

@@ -1,11 +1,19 @@
 // posecal_session_*: one camera feeding one pose-selection engine, behind the C ABI.
+//
+// Session states as the ABI sees them (docs/c-api.md draws them):
+//   open --first frame--> running (engine states waiting_for_board .. refining)
+//        --converged/failed--> finished (step/feed/pose_reached/skip: POSECAL_E_STATE)
+// and, orthogonally, "inside the event callback", where only status, target_pose and result
+// may be called on the session.
 #include <chrono>
+#include <cmath>
 #include <ctime>
 #include <memory>
 #include <opencv2/imgproc.hpp>
 
 #include "abi_common.hpp"
 #include "context.hpp"
+#include "evaluation.hpp"
 #include "json_report.hpp"
 #include "posecal.h"
 #include "posecal/session.hpp"
@@ -17,6 +25,8 @@ using posecal::abi::require;
 using Json = nlohmann::json;
 
 struct posecal_session {
+  // Declared first, destroyed last: the camera's backend lives in the context.
+  std::shared_ptr<abi::Context> context;
   std::unique_ptr<CalibrationSession> session;
   DeviceInfo camera;
   bool external = false;
@@ -24,13 +34,18 @@ struct posecal_session {
   posecal_event_fn fn = nullptr;
   void* user_data = nullptr;
   std::string started, finished;
+  // The last frame, owned here: a camera's zero-copy frame goes back to its stream when step()
+  // returns, and a host's fed image belongs to the host.
+  cv::Mat last_frame;
   // sim:// only: the fixed test set, rendered once, and the evaluation of the last result.
   std::vector<Observation> test_set;
   int evaluated_keyframes = -1;
-  SimEvaluation evaluation;
+  Json evaluation;
 };
 
 namespace {
+
+const char* kConfig = "session config";
 
 std::string utc_now() {
   char buf[32];
@@ -41,11 +56,12 @@ std::string utc_now() {
   return buf;
 }
 
-Json number(double v) { return std::isfinite(v) ? Json(v) : Json(nullptr); }
-
+// Calls not allowed from the session's own event callback (the engine is mid-frame there).
 void check_not_in_callback(const posecal_session* s, const char* call) {
   if (s->in_callback) {
-    throw Error(ErrorCode::kState, std::string(call) + " may not be called from the session's event callback");
+    throw Error(ErrorCode::kState, std::string(call) +
+                                       " may not be called from the session's event callback "
+                                       "(only status, target_pose and result may)");
   }
 }
 
@@ -62,76 +78,123 @@ Json event_json(const SessionEvent& e, std::string* kind) {
     if (!ev.parameter.empty()) j["parameter"] = ev.parameter;
     j["message"] = ev.message;
   } else {
-    *kind = e.kind == SessionEvent::Kind::kCameraDisconnected ? "camera_disconnected"
+    *kind = e.kind == SessionEvent::Kind::kCameraDisconnected  ? "camera_disconnected"
             : e.kind == SessionEvent::Kind::kCameraReconnected ? "camera_reconnected"
-                                                                : "error";
+                                                               : "error";
     j["message"] = e.message;
   }
   return j;
 }
 
 EngineOptions engine_options(const Json& c, bool* lock_settings) {
+  using namespace posecal::abi;
   EngineOptions o;
-  if (c.contains("target")) o.target = TargetSpec::parse(c.at("target").get<std::string>());
+  if (c.contains("target")) o.target = TargetSpec::parse(get_string(c, "target", "", kConfig));
   if (c.contains("operator")) {
-    const std::string op = c.at("operator").get<std::string>();
+    const std::string op = get_string(c, "operator", "", kConfig);
     if (op != "person" && op != "robot") {
-      throw Error(ErrorCode::kInvalidArgument, "session config: operator must be \"person\" or \"robot\"");
+      throw Error(ErrorCode::kInvalidArgument,
+                  "session config: 'operator' must be \"person\" or \"robot\"");
     }
     o.robot = op == "robot";
   }
-  o.convergence_threshold = c.value("convergence_threshold", o.convergence_threshold);
-  o.max_keyframes = c.value("max_keyframes", o.max_keyframes);
-  o.jaccard_threshold = c.value("jaccard_threshold", o.jaccard_threshold);
-  o.still_motion_px = c.value("still_motion_px", o.still_motion_px);
-  o.constraint_factor = c.value("constraint_factor", o.constraint_factor);
-  o.target_timeout_frames = c.value("target_timeout_frames", o.target_timeout_frames);
-  o.pose_candidates = c.value("pose_candidates", o.pose_candidates);
-  o.posegen.max_tilt_deg = c.value("max_tilt_deg", o.posegen.max_tilt_deg);
-  *lock_settings = c.value("lock_settings", true);
+  o.convergence_threshold =
+      get_double(c, "convergence_threshold", o.convergence_threshold, 1e-6, 0.999, kConfig);
+  o.max_keyframes = get_int(c, "max_keyframes", o.max_keyframes, 3, 1000, kConfig);
+  o.jaccard_threshold =
+      get_double(c, "jaccard_threshold", o.jaccard_threshold, 0.01, 0.999, kConfig);
+  o.still_motion_px = get_double(c, "still_motion_px", o.still_motion_px, 0.01, 99, kConfig);
+  o.constraint_factor = get_double(c, "constraint_factor", o.constraint_factor, 1, 50, kConfig);
+  o.target_timeout_frames =
+      get_int(c, "target_timeout_frames", o.target_timeout_frames, 0, 1000000, kConfig);
+  o.pose_candidates = get_int(c, "pose_candidates", o.pose_candidates, 1, 64, kConfig);
+  o.posegen.max_tilt_deg = get_double(c, "max_tilt_deg", o.posegen.max_tilt_deg, 1, 89, kConfig);
+  *lock_settings = get_bool(c, "lock_settings", true, kConfig);
   std::string why;
   if (!o.is_valid(&why)) throw Error(ErrorCode::kInvalidArgument, "session config: " + why);
   return o;
 }
 
-cv::Mat wrap_image(const posecal_image* img, bool* rgb) {
+int channels_of(int32_t format) {
+  switch (format) {
+    case POSECAL_PIXEL_MONO8:
+      return 1;
+    case POSECAL_PIXEL_BGR8:
+      return 3;
+    case POSECAL_PIXEL_RGB8:
+      return 3;
+    default:
+      throw Error(ErrorCode::kInvalidArgument, "image: unknown pixel format " +
+                                                   std::to_string(format) +
+                                                   " (POSECAL_PIXEL_MONO8, _BGR8 or _RGB8)");
+  }
+}
+
+// Wraps a host image without copying, after checking every field.
+cv::Mat wrap_image(const posecal_image* img) {
   require(img, "image");
   if (img->struct_size < sizeof(posecal_image)) {
-    throw Error(ErrorCode::kInvalidArgument, "image: struct_size " + std::to_string(img->struct_size) +
-                                                 " is smaller than sizeof(posecal_image) " +
-                                                 std::to_string(sizeof(posecal_image)));
+    throw Error(
+        ErrorCode::kInvalidArgument,
+        "image: struct_size " + std::to_string(img->struct_size) +
+            " is smaller than sizeof(posecal_image) = " + std::to_string(sizeof(posecal_image)));
+  }
+  if (img->width <= 0 || img->height <= 0 || img->width > 65535 || img->height > 65535) {
+    throw Error(ErrorCode::kInvalidArgument, "image: width and height must be in 1..65535, got " +
+                                                 std::to_string(img->width) + "x" +
+                                                 std::to_string(img->height));
+  }
+  const int channels = channels_of(img->format);
+  if (img->stride_bytes < img->width * channels) {
+    throw Error(
+        ErrorCode::kInvalidArgument,
+        "image: stride_bytes " + std::to_string(img->stride_bytes) +
+            " is smaller than width x bytes per pixel = " + std::to_string(img->width * channels));
   }
   require(img->data, "image->data");
-  if (img->width <= 0 || img->height <= 0 || img->width > 65535 || img->height > 65535) {
-    throw Error(ErrorCode::kInvalidArgument, "image: width and height must be in 1..65535");
+  return cv::Mat(img->height, img->width, channels == 1 ? CV_8UC1 : CV_8UC3, img->data,
+                 static_cast<size_t>(img->stride_bytes));
+}
+
+// Converts between the engine's 8-bit grey / BGR and a host format.
+void convert_into(const cv::Mat& src, cv::Mat& dst, int32_t dst_format) {
+  const bool src_grey = src.channels() == 1;
+  switch (dst_format) {
+    case POSECAL_PIXEL_MONO8:
+      if (src_grey)
+        src.copyTo(dst);
+      else
+        cv::cvtColor(src, dst, cv::COLOR_BGR2GRAY);
+      return;
+    case POSECAL_PIXEL_BGR8:
+      if (src_grey)
+        cv::cvtColor(src, dst, cv::COLOR_GRAY2BGR);
+      else
+        src.copyTo(dst);
+      return;
+    case POSECAL_PIXEL_RGB8:
+      cv::cvtColor(src, dst, src_grey ? cv::COLOR_GRAY2RGB : cv::COLOR_BGR2RGB);
+      return;
   }
-  int type = 0, channels = 0;
-  switch (img->format) {
-    case POSECAL_PIXEL_MONO8: type = CV_8UC1, channels = 1; break;
-    case POSECAL_PIXEL_BGR8: type = CV_8UC3, channels = 3; break;
-    case POSECAL_PIXEL_RGB8: type = CV_8UC3, channels = 3; break;
-    default: throw Error(ErrorCode::kInvalidArgument, "image: unknown pixel format " + std::to_string(img->format));
-  }
-  if (img->stride_bytes < img->width * channels) {
-    throw Error(ErrorCode::kInvalidArgument, "image: stride_bytes " + std::to_string(img->stride_bytes) +
-                                                 " is smaller than width x channels");
-  }
-  *rgb = img->format == POSECAL_PIXEL_RGB8;
-  return cv::Mat(img->height, img->width, type, img->data, static_cast<size_t>(img->stride_bytes));
 }
 
 void deliver(posecal_session* s, const SessionEvent& e) {
   if (!s->fn) return;
   std::string kind;
-  const Json payload = event_json(e, &kind);
-  const std::string text = payload.dump();
+  Json payload = event_json(e, &kind);
+  payload["frames"] = s->session->frames_processed();
+  const std::string text = abi::to_text(payload);
   s->in_callback = true;
   try {
     s->fn(s->user_data, kind.c_str(), text.c_str());
   } catch (...) {
-    // A C callback cannot throw; a C++ host's exception must not unwind through us.
+    // A C callback cannot throw; a C++ host's exception must not unwind through the engine.
   }
   s->in_callback = false;
+}
+
+void note_finished(posecal_session* s) {
+  if (s->session->finished() && s->finished.empty()) s->finished = utc_now();
 }
 
 Json status_json(posecal_session* s) {
@@ -141,6 +204,7 @@ Json status_json(posecal_session* s) {
   j["camera"] = abi::device_json(s->camera);
   j["frames"] = cs.frames_processed();
   j["camera_connected"] = !cs.disconnected();
+  j["finished"] = cs.finished();
   if (!eng) {
     j["state"] = "waiting_for_board";
     j["converged"] = false;
@@ -149,8 +213,13 @@ Json status_json(posecal_session* s) {
     j["guidance"] = "waiting for the first frame";
     j["jaccard"] = nullptr;
     j["still"] = false;
+    j["motion_px"] = nullptr;
     j["board_visible"] = false;
     j["corners"] = 0;
+    j["corners_required"] = 0;
+    j["pose_reached"] = false;
+    j["captured"] = false;
+    j["has_target"] = false;
     j["image_width"] = nullptr;
     j["image_height"] = nullptr;
     j["parameters"] = Json::object();
@@ -162,25 +231,35 @@ Json status_json(posecal_session* s) {
   j["keyframes"] = eng->keyframes();
   j["target_parameter"] = r.target_parameter.empty() ? Json(nullptr) : Json(r.target_parameter);
   j["guidance"] = r.guidance;
-  j["jaccard"] = r.jaccard >= 0 ? Json(r.jaccard) : Json(nullptr);
+  j["jaccard"] = r.jaccard >= 0 ? abi::number(r.jaccard) : Json(nullptr);
   j["still"] = r.still;
-  j["motion_px"] = r.motion_px >= 0 ? Json(r.motion_px) : Json(nullptr);
+  j["motion_px"] = r.motion_px >= 0 ? abi::number(r.motion_px) : Json(nullptr);
   j["board_visible"] = r.board_visible;
   j["corners"] = r.corners;
   j["corners_required"] = r.corners_required;
   j["pose_reached"] = r.pose_reached;
   j["captured"] = r.captured;
+  j["has_target"] = eng->target().has_value();
   j["image_width"] = eng->estimate().width();
   j["image_height"] = eng->estimate().height();
   if (eng->state() == EngineState::kFailed) j["failure"] = eng->failure_reason();
   Json params = Json::object();
   for (const auto& p : eng->parameters()) {
-    params[p.name] = {{"value", number(p.value)},
-                      {"std", p.std >= 0 ? number(p.std) : Json(nullptr)},
+    params[p.name] = {{"value", abi::number(p.value)},
+                      {"std", p.std >= 0 ? abi::number(p.std) : Json(nullptr)},
                       {"converged", p.converged}};
   }
   j["parameters"] = params;
   return j;
+}
+
+const CalibrationResult& require_result(posecal_session* s) {
+  const CalibrationEngine* eng = s->session->engine_ptr();
+  if (!eng || !eng->result()) {
+    throw Error(ErrorCode::kState, "no calibration yet: it needs two keyframes (" +
+                                       std::to_string(eng ? eng->keyframes() : 0) + " captured)");
+  }
+  return *eng->result();
 }
 
 }  // namespace
@@ -188,28 +267,35 @@ Json status_json(posecal_session* s) {
 extern "C" {
 
 POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char* camera_uri,
-                                                const char* config_json, posecal_session** out) noexcept {
+                                                const char* config_json,
+                                                posecal_session** out) noexcept {
   return guarded(__func__, [&] {
-    require(ctx, "ctx");
-    require(camera_uri, "camera_uri");
     require(out, "out");
     *out = nullptr;
-    const Json c = abi::parse_options(config_json,
-                                      {"target", "operator", "convergence_threshold", "max_keyframes",
-                                       "jaccard_threshold", "still_motion_px", "constraint_factor",
-                                       "target_timeout_frames", "pose_candidates", "lock_settings", "max_tilt_deg"},
-                                      "session config");
+    require(ctx, "ctx");
+    require(camera_uri, "camera_uri");
+    const Json c = abi::parse_options(
+        config_json,
+        {"target", "operator", "convergence_threshold", "max_keyframes", "jaccard_threshold",
+         "still_motion_px", "constraint_factor", "target_timeout_frames", "pose_candidates",
+         "lock_settings", "max_tilt_deg"},
+        kConfig);
     bool lock = true;
     EngineOptions eo = engine_options(c, &lock);
     const Uri uri = Uri::parse(camera_uri);
+    ctx->impl->require_enabled(uri.scheme);
     auto s = std::make_unique<posecal_session>();
+    s->context = ctx->impl;
     std::unique_ptr<Camera> camera;
     if (uri.scheme == "sim") {
-      // The simulated board must be the session's target, so the camera is built here.
+      // The simulated board must be the session's target, and the simulated operator follows
+      // the session's operator kind, so the camera is built here.
       SimCameraOptions so = sim_options_from_uri(uri, eo.target);
-      const bool uri_robot = uri.query.count("operator") && uri.query.at("operator") == "robot";
-      if (c.contains("operator") && uri.query.count("operator") && uri_robot != eo.robot) {
-        throw Error(ErrorCode::kInvalidArgument, "session config operator contradicts the sim:// URI's operator");
+      const bool uri_has_op = uri.query.count("operator") > 0;
+      const bool uri_robot = uri_has_op && uri.query.at("operator") == "robot";
+      if (c.contains("operator") && uri_has_op && uri_robot != eo.robot) {
+        throw Error(ErrorCode::kInvalidArgument,
+                    "session config 'operator' contradicts the sim:// URI's operator");
       }
       eo.robot = eo.robot || uri_robot;
       so.op.kind = eo.robot ? OperatorKind::kRobot : OperatorKind::kPerson;
@@ -219,7 +305,7 @@ POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char
       }
       camera = make_sim_camera(so);
     } else {
-      camera = ctx->manager().open(camera_uri);
+      camera = ctx->impl->open(camera_uri, eo.target);
     }
     s->external = uri.scheme == "external";
     s->camera = camera->info();
@@ -233,12 +319,12 @@ POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char
 }
 
 POSECAL_API void posecal_session_close(posecal_session* session) noexcept {
-  guarded(__func__, [&] {
+  abi::guarded_void(__func__, [&] {
     if (session && session->in_callback) {
-      throw Error(ErrorCode::kState, "posecal_session_close called from the session's event callback (ignored)");
+      throw Error(ErrorCode::kState,
+                  "called from the session's event callback: the session was not closed");
     }
     delete session;
-    return POSECAL_OK;
   });
 }
 
@@ -247,53 +333,64 @@ POSECAL_API posecal_status posecal_session_step(posecal_session* session, int ti
     require(session, "session");
     check_not_in_callback(session, "posecal_session_step");
     if (session->external) {
-      throw Error(ErrorCode::kState, "session on 'external' has no camera to step: use posecal_session_feed");
+      throw Error(ErrorCode::kState,
+                  "session on 'external' has no camera to step: use posecal_session_feed");
     }
     if (timeout_ms < 0 || timeout_ms > 600000) {
-      throw Error(ErrorCode::kInvalidArgument, "timeout_ms must be in [0, 600000]");
+      throw Error(ErrorCode::kInvalidArgument,
+                  "timeout_ms must be in [0, 600000], got " + std::to_string(timeout_ms));
     }
-    if (session->session->finished()) throw Error(ErrorCode::kState, "the calibration has finished");
+    if (session->session->finished())
+      throw Error(ErrorCode::kState, "the calibration has finished");
     const StepStatus st = session->session->step(timeout_ms);
-    if (session->session->finished() && session->finished.empty()) session->finished = utc_now();
+    note_finished(session);
     switch (st) {
-      case StepStatus::kFrame: return POSECAL_OK;
+      case StepStatus::kFrame:
+        session->session->last_frame().copyTo(session->last_frame);
+        return POSECAL_OK;
       case StepStatus::kTimeout:
         throw Error(ErrorCode::kTimeout, "no frame from '" + session->camera.uri + "' within " +
                                              std::to_string(timeout_ms) + " ms");
       case StepStatus::kDisconnected:
-        throw Error(ErrorCode::kDevice, "camera '" + session->camera.uri + "' is disconnected (keyframes kept)");
+        throw Error(ErrorCode::kDevice,
+                    "camera '" + session->camera.uri + "' is disconnected (keyframes kept)");
       case StepStatus::kEndOfStream:
-        throw Error(ErrorCode::kNotFound, "camera '" + session->camera.uri + "' has no more frames");
-      case StepStatus::kFinished: throw Error(ErrorCode::kState, "the calibration has finished");
+        throw Error(ErrorCode::kNotFound,
+                    "camera '" + session->camera.uri + "' has no more frames");
+      case StepStatus::kFinished:
+        throw Error(ErrorCode::kState, "the calibration has finished");
     }
     return POSECAL_E_INTERNAL;
   });
 }
 
-POSECAL_API posecal_status posecal_session_feed(posecal_session* session, const posecal_image* image) noexcept {
+POSECAL_API posecal_status posecal_session_feed(posecal_session* session,
+                                                const posecal_image* image) noexcept {
   return guarded(__func__, [&] {
     require(session, "session");
     check_not_in_callback(session, "posecal_session_feed");
-    bool rgb = false;
-    const cv::Mat m = wrap_image(image, &rgb);
-    cv::Mat frame;
-    if (rgb) {
+    const cv::Mat m = wrap_image(image);
+    if (session->session->finished())
+      throw Error(ErrorCode::kState, "the calibration has finished");
+    cv::Mat frame;  // the library's own copy: the host's pixels are not kept beyond the call
+    if (image->format == POSECAL_PIXEL_RGB8) {
       cv::cvtColor(m, frame, cv::COLOR_RGB2BGR);
     } else {
-      frame = m;
+      m.copyTo(frame);
     }
-    if (session->session->finished()) throw Error(ErrorCode::kState, "the calibration has finished");
     session->session->feed(frame);
-    if (session->session->finished() && session->finished.empty()) session->finished = utc_now();
+    session->last_frame = frame;
+    note_finished(session);
     return POSECAL_OK;
   });
 }
 
-POSECAL_API posecal_status posecal_session_status(posecal_session* session, char* buf, size_t* size) noexcept {
+POSECAL_API posecal_status posecal_session_status(posecal_session* session, char* buf,
+                                                  size_t* size) noexcept {
   return guarded(__func__, [&] {
     require(session, "session");
     require(size, "size");
-    return abi::copy_out(status_json(session).dump(), buf, size);
+    return abi::copy_out(abi::to_text(status_json(session)), buf, size);
   });
 }
 
@@ -305,8 +402,9 @@ POSECAL_API posecal_status posecal_session_target_pose(posecal_session* session,
     require(tvec, "tvec");
     const CalibrationEngine* eng = session->session->engine_ptr();
     if (!eng || !eng->target()) {
-      throw Error(ErrorCode::kState, eng ? std::string("no target while ") + engine_state_name(eng->state())
-                                         : "no target before the first frame");
+      throw Error(ErrorCode::kState,
+                  eng ? std::string("no target while ") + engine_state_name(eng->state())
+                      : "no target before the first frame");
     }
     const Pose& p = eng->target()->T_cam_board;
     for (int i = 0; i < 3; ++i) {
@@ -320,21 +418,59 @@ POSECAL_API posecal_status posecal_session_target_pose(posecal_session* session,
 POSECAL_API posecal_status posecal_session_pose_reached(posecal_session* session) noexcept {
   return guarded(__func__, [&] {
     require(session, "session");
+    check_not_in_callback(session, "posecal_session_pose_reached");
     if (!session->session->options().robot) {
-      throw Error(ErrorCode::kState, "pose_reached is for sessions opened with \"operator\": \"robot\"");
+      throw Error(ErrorCode::kState,
+                  "pose_reached is for sessions opened with \"operator\": \"robot\"");
     }
     session->session->engine().report_pose_reached();
     return POSECAL_OK;
   });
 }
 
-POSECAL_API posecal_status posecal_session_render_overlay(posecal_session* session, posecal_image* inout) noexcept {
+POSECAL_API posecal_status posecal_session_skip_target(posecal_session* session) noexcept {
   return guarded(__func__, [&] {
     require(session, "session");
-    bool rgb = false;
-    cv::Mat m = wrap_image(inout, &rgb);
+    check_not_in_callback(session, "posecal_session_skip_target");
+    session->session->engine().skip_target();
+    return POSECAL_OK;
+  });
+}
+
+POSECAL_API posecal_status posecal_session_last_frame(posecal_session* session,
+                                                      posecal_image* out) noexcept {
+  return guarded(__func__, [&] {
+    require(session, "session");
+    check_not_in_callback(session, "posecal_session_last_frame");
+    cv::Mat dst = wrap_image(out);
+    if (session->last_frame.empty()) throw Error(ErrorCode::kState, "no frame processed yet");
+    if (dst.size() != session->last_frame.size()) {
+      throw Error(ErrorCode::kInvalidArgument,
+                  "image: " + std::to_string(dst.cols) + "x" + std::to_string(dst.rows) +
+                      " given, the frame is " + std::to_string(session->last_frame.cols) + "x" +
+                      std::to_string(session->last_frame.rows));
+    }
+    cv::Mat converted;
+    convert_into(session->last_frame, converted, out->format);
+    converted.copyTo(dst);  // dst wraps the host's buffer: copyTo keeps its stride
+    return POSECAL_OK;
+  });
+}
+
+POSECAL_API posecal_status posecal_session_render_overlay(posecal_session* session,
+                                                          posecal_image* inout) noexcept {
+  return guarded(__func__, [&] {
+    require(session, "session");
+    check_not_in_callback(session, "posecal_session_render_overlay");
+    cv::Mat m = wrap_image(inout);
     const CalibrationEngine& eng = session->session->engine();
-    if (rgb) {
+    if (m.cols != eng.estimate().width() || m.rows != eng.estimate().height()) {
+      throw Error(ErrorCode::kInvalidArgument,
+                  "image: " + std::to_string(m.cols) + "x" + std::to_string(m.rows) +
+                      " given, the camera's is " + std::to_string(eng.estimate().width()) + "x" +
+                      std::to_string(eng.estimate().height()));
+    }
+    if (inout->format == POSECAL_PIXEL_RGB8) {
       cv::Mat bgr;
       cv::cvtColor(m, bgr, cv::COLOR_RGB2BGR);
       eng.draw_overlay(bgr);
@@ -346,20 +482,8 @@ POSECAL_API posecal_status posecal_session_render_overlay(posecal_session* sessi
   });
 }
 
-namespace {
-
-const CalibrationResult& require_result(posecal_session* s) {
-  const CalibrationEngine* eng = s->session->engine_ptr();
-  if (!eng || !eng->result()) {
-    throw Error(ErrorCode::kState, "no calibration yet: it needs two keyframes (" +
-                                       std::to_string(eng ? eng->keyframes() : 0) + " captured)");
-  }
-  return *eng->result();
-}
-
-}  // namespace
-
-POSECAL_API posecal_status posecal_session_result(posecal_session* session, char* buf, size_t* size) noexcept {
+POSECAL_API posecal_status posecal_session_result(posecal_session* session, char* buf,
+                                                  size_t* size) noexcept {
   return guarded(__func__, [&] {
     require(session, "session");
     require(size, "size");
@@ -380,29 +504,32 @@ POSECAL_API posecal_status posecal_session_result(posecal_session* session, char
     for (const auto& p : eng.parameters()) conv[p.name] = p.converged;
     j["parameter_converged"] = conv;
     if (SimCamera* sim = as_sim_camera(&session->session->camera())) {
-      if (session->test_set.empty()) session->test_set = render_test_set(sim->synthetic());
+      if (session->test_set.empty()) session->test_set = abi::sim_test_set(sim->sim_options());
       if (session->evaluated_keyframes != eng.keyframes()) {
-        session->evaluation = evaluate_synthetic(r.model, sim->truth(), session->test_set);
+        session->evaluation = abi::evaluation_json(r.model, session->test_set, &sim->truth());
         session->evaluated_keyframes = eng.keyframes();
       }
-      j["eps_test"] = number(session->evaluation.eps_test);
-      j["eps_gt"] = number(session->evaluation.eps_gt);
-      j["test_frames"] = session->evaluation.test_frames;
+      j.update(session->evaluation);
       Json truth;
-      for (int i = 0; i < sim->truth().num_params(); ++i) truth[sim->truth().param_names()[i]] = sim->truth().params()[i];
+      for (int i = 0; i < sim->truth().num_params(); ++i) {
+        truth[sim->truth().param_names()[i]] = sim->truth().params()[i];
+      }
       j["ground_truth"] = truth;
       Json att = Json::object();
-      for (const auto& [kind, a] : sim->op().attempts()) att[kind] = {{"attempts", a.attempts}, {"reached", a.reached}};
+      for (const auto& [kind, a] : sim->op().attempts())
+        att[kind] = {{"attempts", a.attempts}, {"reached", a.reached}};
       j["operator_attempts"] = att;
     }
-    return abi::copy_out(j.dump(), buf, size);
+    return abi::copy_out(abi::to_text(j), buf, size);
   });
 }
 
-POSECAL_API posecal_status posecal_session_save(posecal_session* session, const char* path) noexcept {
+POSECAL_API posecal_status posecal_session_save(posecal_session* session,
+                                                const char* path) noexcept {
   return guarded(__func__, [&] {
     require(session, "session");
     require(path, "path");
+    check_not_in_callback(session, "posecal_session_save");
     const CalibrationResult& r = require_result(session);
     const CalibrationEngine& eng = session->session->engine();
     abi::save_calibration(path, r,
@@ -414,10 +541,12 @@ POSECAL_API posecal_status posecal_session_save(posecal_session* session, const 
   });
 }
 
-POSECAL_API posecal_status posecal_session_set_callback(posecal_session* session, posecal_event_fn fn,
+POSECAL_API posecal_status posecal_session_set_callback(posecal_session* session,
+                                                        posecal_event_fn fn,
                                                         void* user_data) noexcept {
   return guarded(__func__, [&] {
     require(session, "session");
+    check_not_in_callback(session, "posecal_session_set_callback");
     session->fn = fn;
     session->user_data = user_data;
     return POSECAL_OK;

@@ -61,10 +61,16 @@ FakeGvCamera::FakeGvCamera(std::string serial, std::string address,
                            std::shared_ptr<const FakeScene> scene)
     : serial_(std::move(serial)), address_(std::move(address)), scene_(std::move(scene)) {}
 
+FakeGvCamera::FakeGvCamera(std::string serial, std::string address, PayloadSource source)
+    : serial_(std::move(serial)), address_(std::move(address)), source_(std::move(source)) {}
+
 FakeGvCamera::~FakeGvCamera() { stop(); }
 
 bool FakeGvCamera::start() {
   if (gv_ != nullptr) return true;
+  // The GigE Vision bootstrap register holds 16 bytes including the NUL. Aravis refuses longer
+  // serial numbers with a critical warning but still runs a simulator without a camera behind it.
+  if (serial_.size() >= 16) return false;
   gv_ = arv_gv_fake_camera_new(address_.c_str(), serial_.c_str());
   if (gv_ == nullptr || !arv_gv_fake_camera_is_running(gv_)) {
     stop();
@@ -144,12 +150,23 @@ void FakeGvCamera::fill(ArvBuffer* buffer, void* self_ptr, guint32 /*exposure_us
   const cv::Rect roi(arv_buffer_get_image_x(buffer), arv_buffer_get_image_y(buffer),
                      arv_buffer_get_image_width(buffer), arv_buffer_get_image_height(buffer));
   const uint64_t id = arv_buffer_get_frame_id(buffer);
-  const std::vector<uint8_t> raw = self->expected_raw(id, format, roi);
   // The simulator allocated the payload size (checked before it calls us); Aravis' getter reports
   // 0 bytes here because nothing was "received" yet.
   size_t ignored = 0;
   auto* data = static_cast<uint8_t*>(const_cast<void*>(arv_buffer_get_data(buffer, &ignored)));
-  std::memcpy(data, raw.data(), raw.size());
+  if (self->source_) {
+    const auto raw = self->source_(id, format, roi);
+    const size_t bytes =
+        static_cast<size_t>(roi.area()) * ARV_PIXEL_FORMAT_BIT_PER_PIXEL(arv_format) / 8;
+    if (!raw || raw->size() != bytes) {
+      self->rejects_->fetch_add(1);
+      return;
+    }
+    std::memcpy(data, raw->data(), raw->size());
+  } else {
+    const std::vector<uint8_t> raw = self->expected_raw(id, format, roi);
+    std::memcpy(data, raw.data(), raw.size());
+  }
   self->last_id_->store(id);
   self->filled_->fetch_add(1);
 }

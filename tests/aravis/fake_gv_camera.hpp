@@ -6,11 +6,15 @@
 // test can recompute exactly what the camera sent (expected_engine) and compare it with what the
 // backend delivered, bit for bit. Frame k shows view k % n_views; its first row starts with a
 // stamp (tag, frame id) so two frames never look alike.
+//
+// Alternatively the frames come from a PayloadSource (closed-loop tests: guided_loop.hpp), which
+// the simulator's thread asks for every frame it sends.
 #pragma once
 
 #include <arv.h>
 
 #include <atomic>
+#include <functional>
 #include <memory>
 #include <string>
 #include <vector>
@@ -32,7 +36,14 @@ std::shared_ptr<const FakeScene> make_scene(uint64_t seed, int n_views, uint32_t
 
 class FakeGvCamera {
  public:
+  // The raw payload of frame `frame_id` in the simulator's current format and region of
+  // interest. Called on the simulator's thread. nullptr (or a payload of the wrong size, which
+  // is counted in source_rejects()) leaves the frame as the simulator made it.
+  using PayloadSource = std::function<std::shared_ptr<const std::vector<uint8_t>>(
+      uint64_t frame_id, PixelFormat format, const cv::Rect& roi)>;
+
   FakeGvCamera(std::string serial, std::string address, std::shared_ptr<const FakeScene> scene);
+  FakeGvCamera(std::string serial, std::string address, PayloadSource source);
   ~FakeGvCamera();
   FakeGvCamera(const FakeGvCamera&) = delete;
   FakeGvCamera& operator=(const FakeGvCamera&) = delete;
@@ -48,9 +59,11 @@ class FakeGvCamera {
   const std::string& serial() const { return serial_; }
   const std::string& address() const { return address_; }
   std::string device_id() const { return "Aravis-Fake-" + serial_; }
+  // The fixed scene (not for a camera made from a PayloadSource).
   const FakeScene& scene() const { return *scene_; }
   uint64_t frames_filled() const { return filled_->load(); }
   uint64_t last_frame_id() const { return last_id_->load(); }
+  uint64_t source_rejects() const { return rejects_->load(); }
 
   // The 8-bit grey image behind frame `frame_id` over `roi` (sensor coordinates).
   cv::Mat expected_grey(uint64_t frame_id, const cv::Rect& roi) const;
@@ -65,10 +78,12 @@ class FakeGvCamera {
 
   std::string serial_, address_;
   std::shared_ptr<const FakeScene> scene_;
+  PayloadSource source_;
   ArvGvFakeCamera* gv_ = nullptr;
   double lost_ratio_ = 0.0;
   std::shared_ptr<std::atomic<uint64_t>> filled_ = std::make_shared<std::atomic<uint64_t>>(0);
   std::shared_ptr<std::atomic<uint64_t>> last_id_ = std::make_shared<std::atomic<uint64_t>>(0);
+  std::shared_ptr<std::atomic<uint64_t>> rejects_ = std::make_shared<std::atomic<uint64_t>>(0);
 };
 
 // Raw payload of a grey image in a camera pixel format (Mono16: grey * 256 + 0x5a; RGB8: red and

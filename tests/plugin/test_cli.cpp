@@ -1,12 +1,21 @@
 // The posecal command line, end to end (it is built on the C ABI only).
+#include <fcntl.h>
 #include <gtest/gtest.h>
+#include <poll.h>
+#include <signal.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
 #include <array>
+#include <chrono>
 #include <cstdio>
 #include <filesystem>
+#include <fstream>
 #include <nlohmann/json.hpp>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgcodecs.hpp>
+#include <set>
+#include <sstream>
 
 #include "posecal/target.hpp"
 
@@ -19,9 +28,13 @@ struct CliRun {
   std::string out;
 };
 
-CliRun run(const std::string& args) {
+// Runs the CLI through the shell; stderr is merged into `out` unless `stdout_only`.
+// `env` replaces the default environment change (no display).
+CliRun run(const std::string& args, bool stdout_only = false,
+           const std::string& env = "-u DISPLAY") {
   CliRun r;
-  const std::string cmd = std::string(POSECAL_CLI) + " " + args + " 2>&1";
+  const std::string cmd = "env " + env + " " + std::string(POSECAL_CLI) + " " + args +
+                          (stdout_only ? " 2>/dev/null" : " 2>&1");
   FILE* p = popen(cmd.c_str(), "r");
   if (!p) return r;
   std::array<char, 4096> buf;
@@ -146,4 +159,372 @@ TEST(Cli, WritesPrintableBoard) {
   EXPECT_EQ(r.status, 0) << r.out;
   r = run("board --out /nonexistent/dir/board.pdf");
   EXPECT_EQ(r.status, 2) << r.out;
+}
+
+namespace {
+
+// Non-empty lines of a text.
+std::vector<std::string> lines_of(const std::string& text) {
+  std::vector<std::string> out;
+  std::istringstream in(text);
+  for (std::string line; std::getline(in, line);) {
+    if (!line.empty()) out.push_back(line);
+  }
+  return out;
+}
+
+std::string temp_dir(const std::string& name) {
+  const fs::path dir = fs::path(testing::TempDir()) / name;
+  fs::remove_all(dir);
+  fs::create_directories(dir);
+  return dir.string();
+}
+
+}  // namespace
+
+TEST(Cli, SimulateExitCodes) {
+  // (exit code 0 for a converged run: LiveCalibrationPrintsJsonEvents, EvaluateGrabFeatures)
+  // Three keyframes cannot converge: the run ends as "failed", with a result, exit code 3.
+  CliRun r = run("simulate --seed 2 --max-keyframes 3 --json", true);
+  ASSERT_EQ(r.status, 3) << r.out;
+  const auto j = nlohmann::json::parse(r.out);
+  EXPECT_FALSE(j["converged"].get<bool>());
+  EXPECT_EQ(j["keyframes"], 3);
+  EXPECT_EQ(run("simulate --operator cat").status, 1);
+  EXPECT_EQ(run("simulate --seed x").status, 1);
+  EXPECT_EQ(run("simulate --camera-model /nonexistent.yml").status, 2);
+}
+
+// posecal station over four simulated cameras: all converge, one result file per camera named
+// by its identity, and a summary.
+TEST(Cli, StationOfFourSimulatedCamerasConverges) {
+  const std::string dir = temp_dir("posecal_station4");
+  const auto t0 = std::chrono::steady_clock::now();
+  const CliRun r =
+      run("station --cameras 'sim://?seed=51,sim://?seed=52,sim://?seed=53,"
+          "sim://?seed=54&operator=robot' --out-dir " +
+              dir + " --json",
+          true);
+  const double wall_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  ASSERT_EQ(r.status, 0) << r.out;
+  const auto j = nlohmann::json::parse(r.out);
+  EXPECT_EQ(j["total"], 4);
+  EXPECT_EQ(j["converged"], 4);
+  EXPECT_TRUE(j["all_converged"].get<bool>());
+  std::set<std::string> files;
+  double sum_camera_s = 0;
+  for (const auto& c : j["cameras"]) {
+    EXPECT_TRUE(c["converged"].get<bool>()) << c.dump();
+    EXPECT_TRUE(c["error"].is_null()) << c.dump();
+    EXPECT_GE(c["keyframes"].get<int>(), 5);
+    EXPECT_LT(c["eps_test"].get<double>(), 0.3) << c.dump();
+    const std::string file = c["file"].get<std::string>();
+    files.insert(fs::path(file).filename().string());
+    cv::FileStorage fsr(file, cv::FileStorage::READ);
+    ASSERT_TRUE(fsr.isOpened()) << file;
+    EXPECT_EQ(static_cast<std::string>(fsr["camera_id"]), c["camera"]["id"].get<std::string>());
+    sum_camera_s += c["wall_ms"].get<double>() / 1000;
+  }
+  EXPECT_EQ(files, (std::set<std::string>{"sim-51.yml", "sim-52.yml", "sim-53.yml", "sim-54.yml"}));
+  std::ifstream summary(dir + "/summary.json");
+  ASSERT_TRUE(summary.good());
+  EXPECT_EQ(nlohmann::json::parse(summary)["converged"], 4);
+  // The cameras ran concurrently: the whole station took less than their sum.
+  std::printf("station: %.1f s wall, %.1f s summed over the cameras\n", wall_s, sum_camera_s);
+  EXPECT_LT(wall_s, sum_camera_s);
+}
+
+TEST(Cli, StationReportsFailedCamerasAndIdentityClashes) {
+  const std::string dir = temp_dir("posecal_station_bad");
+  // Two sessions of one simulated camera (same id) and a camera that does not exist; three
+  // keyframes at most, so the two simulated runs finish early without converging.
+  const CliRun r =
+      run("station --cameras 'sim://?seed=61,sim://?seed=61,images:///nonexistent/x'"
+          " --max-keyframes 3 --out-dir " +
+              dir + " --json",
+          true);
+  ASSERT_EQ(r.status, 2) << r.out;  // a failed camera outweighs unconverged ones
+  const auto j = nlohmann::json::parse(r.out);
+  EXPECT_EQ(j["converged"], 0);
+  EXPECT_FALSE(j["all_converged"].get<bool>());
+  for (int i : {0, 1}) {
+    EXPECT_FALSE(j["cameras"][i]["converged"].get<bool>());
+    EXPECT_TRUE(j["cameras"][i]["error"].is_null()) << j["cameras"][i].dump();
+    EXPECT_EQ(j["cameras"][i]["keyframes"], 3);
+  }
+  EXPECT_EQ(j["cameras"][2]["status"], "POSECAL_E_NOT_FOUND");
+  EXPECT_FALSE(j["cameras"][2]["error"].get<std::string>().empty());
+  std::set<std::string> files = {fs::path(j["cameras"][0]["file"].get<std::string>()).filename(),
+                                 fs::path(j["cameras"][1]["file"].get<std::string>()).filename()};
+  EXPECT_EQ(files, (std::set<std::string>{"sim-61.yml", "sim-61-2.yml"}));
+  EXPECT_EQ(run("station --out-dir " + dir).status, 1);
+  EXPECT_EQ(run("station --cameras sim:// --out-dir " + dir + " --format txt").status, 1);
+}
+
+TEST(Cli, EvaluateGrabFeatures) {
+  const std::string dir = temp_dir("posecal_eval");
+  const std::string yml = dir + "/sim7.yml";
+  CliRun r = run("simulate --seed 7 --out " + yml + " --json", true);
+  ASSERT_EQ(r.status, 0) << r.out;
+  const auto sim = nlohmann::json::parse(r.out);
+
+  // evaluate: the same simulated camera gives the session's eps_test and eps_gt.
+  r = run("evaluate --result " + yml + " --camera 'sim://?seed=7' --json", true);
+  ASSERT_EQ(r.status, 0) << r.out;
+  auto ev = nlohmann::json::parse(r.out);
+  EXPECT_NEAR(ev["eps_test"].get<double>(), sim["eps_test"].get<double>(), 1e-6);
+  EXPECT_NEAR(ev["eps_gt"].get<double>(), sim["eps_gt"].get<double>(), 1e-6);
+  EXPECT_GE(ev["test_frames"].get<int>(), 40);
+  // Another camera: the calibration does not fit it.
+  r = run("evaluate --result " + yml + " --camera 'sim://?seed=8' --json", true);
+  ASSERT_EQ(r.status, 0) << r.out;
+  EXPECT_GT(nlohmann::json::parse(r.out)["eps_gt"].get<double>(), 10 * sim["eps_gt"].get<double>());
+  EXPECT_EQ(run("evaluate --result /nonexistent.yml --camera sim://").status, 2);
+  EXPECT_EQ(run("evaluate --camera sim://").status, 1);
+
+  // grab: PNG files that show the board.
+  r = run("grab --camera 'sim://?seed=7' --count 4 --out " + dir + "/frames --json", true);
+  ASSERT_EQ(r.status, 0) << r.out;
+  const auto g = nlohmann::json::parse(r.out);
+  ASSERT_EQ(g["files"].size(), 4u);
+  int with_board = 0;
+  for (const auto& f : g["files"]) {
+    const cv::Mat img = cv::imread(f["file"].get<std::string>(), cv::IMREAD_UNCHANGED);
+    ASSERT_EQ(img.cols, 1280);
+    ASSERT_EQ(img.rows, 720);
+    if (posecal::Target().detect(img).size() >= 6) ++with_board;
+  }
+  EXPECT_GE(with_board, 3);
+  // The grabbed frames are a camera for evaluate too (images://).
+  r = run("evaluate --result " + yml + " --camera images://" + dir + "/frames --json", true);
+  ASSERT_EQ(r.status, 0) << r.out;
+  ev = nlohmann::json::parse(r.out);
+  EXPECT_EQ(ev["source"], "camera");
+  EXPECT_TRUE(ev["eps_gt"].is_null());
+  EXPECT_LT(ev["eps_test"].get<double>(), 0.5);
+  r = run("evaluate --result " + yml + " --camera images://" + dir + "/frames");
+  EXPECT_EQ(r.status, 0);
+  EXPECT_NE(r.out.find("eps_test"), std::string::npos) << r.out;
+  EXPECT_EQ(run("grab --camera sim:// --out " + dir + "/x").status, 1);  // no --count
+  EXPECT_EQ(run("grab --camera sim:// --count 0 --out " + dir + "/x").status, 1);
+  r = run("grab --camera external --count 1 --timeout-ms 50 --out " + dir + "/x");
+  EXPECT_EQ(r.status, 2);
+  EXPECT_NE(r.out.find("POSECAL_E_TIMEOUT"), std::string::npos) << r.out;
+
+  // features
+  r = run("features --camera 'sim://?seed=7' --json", true);
+  ASSERT_EQ(r.status, 0) << r.out;
+  const auto feats = nlohmann::json::parse(r.out);
+  ASSERT_FALSE(feats.empty());
+  for (const auto& f : feats) {
+    for (const char* k : {"name", "type", "value", "access", "unit", "range", "options"}) {
+      EXPECT_TRUE(f.contains(k)) << k << " in " << f.dump();
+    }
+  }
+  r = run("features --camera 'sim://?seed=7'");
+  EXPECT_EQ(r.status, 0);
+  EXPECT_NE(r.out.find("Width"), std::string::npos) << r.out;
+  EXPECT_EQ(run("features --camera nosuch://x").status, 2);
+}
+
+TEST(Cli, LiveCalibrationPrintsJsonEvents) {
+  const std::string dir = temp_dir("posecal_live");
+  const CliRun r =
+      run("calibrate --camera 'sim://?seed=9' --json --out " + dir + "/live.yml", true);
+  ASSERT_EQ(r.status, 0) << r.out;
+  const auto lines = lines_of(r.out);
+  ASSERT_GT(lines.size(), 5u);
+  std::set<std::string> kinds;
+  for (const auto& line : lines) {
+    const auto j = nlohmann::json::parse(line);  // every line is one JSON object
+    kinds.insert(j["event"].get<std::string>());
+  }
+  EXPECT_TRUE(kinds.count("captured"));
+  EXPECT_TRUE(kinds.count("state_changed"));
+  const auto last = nlohmann::json::parse(lines.back());
+  EXPECT_EQ(last["event"], "result");
+  EXPECT_TRUE(last["converged"].get<bool>());
+  EXPECT_TRUE(fs::exists(dir + "/live.yml"));
+}
+
+// The live window's path (last frame + overlay + imshow) with Qt's offscreen platform, and a
+// DISPLAY where no X server answers: headless instead of the toolkit ending the process.
+TEST(Cli, LiveWindowOffscreenAndUnreachableDisplay) {
+  // Four keyframes at most: the window shows every frame until the run ends (exit code 3).
+  CliRun r = run("calibrate --camera 'sim://?seed=15' --max-keyframes 4 --json", true,
+                 "DISPLAY=:97 POSECAL_WINDOW=force QT_QPA_PLATFORM=offscreen");
+  ASSERT_EQ(r.status, 3) << r.out;
+  EXPECT_EQ(nlohmann::json::parse(lines_of(r.out).back())["event"], "result");
+  // No X server at :97: headless, with a message (a folder of three frames: over at once).
+  const std::string dir = temp_dir("posecal_window");
+  ASSERT_EQ(run("grab --camera 'sim://?seed=15' --count 3 --out " + dir).status, 0);
+  r = run("calibrate --camera images://" + dir, false,
+          "-u POSECAL_WINDOW -u QT_QPA_PLATFORM DISPLAY=:97");
+  EXPECT_EQ(r.status, 2) << r.out;  // three frames: no calibration
+  EXPECT_NE(r.out.find("no X server answers at DISPLAY=:97"), std::string::npos) << r.out;
+}
+
+namespace {
+
+// The CLI as a child process with pipes on stdin and stdout: a robot controller's view.
+class Controller {
+ public:
+  explicit Controller(const std::vector<std::string>& args) {
+    int in[2], out[2];
+    if (pipe(in) != 0 || pipe(out) != 0) return;
+    pid_ = fork();
+    if (pid_ == 0) {
+      dup2(in[0], STDIN_FILENO);
+      dup2(out[1], STDOUT_FILENO);
+      const int devnull = open("/dev/null", O_WRONLY);
+      dup2(devnull, STDERR_FILENO);
+      close(in[1]);
+      close(out[0]);
+      unsetenv("DISPLAY");
+      std::vector<char*> argv{const_cast<char*>(POSECAL_CLI)};
+      for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
+      argv.push_back(nullptr);
+      execv(POSECAL_CLI, argv.data());
+      _exit(127);
+    }
+    close(in[0]);
+    close(out[1]);
+    to_child_ = in[1];
+    from_child_ = out[0];
+    signal(SIGPIPE, SIG_IGN);
+  }
+  ~Controller() {
+    if (to_child_ >= 0) close(to_child_);
+    if (from_child_ >= 0) close(from_child_);
+    if (pid_ > 0 && !reaped_) {
+      kill(pid_, SIGKILL);
+      waitpid(pid_, nullptr, 0);
+    }
+  }
+  bool started() const { return pid_ > 0; }
+  // Next line from the child, or "" on EOF or after timeout_ms.
+  std::string read_line(int timeout_ms) {
+    const auto deadline = std::chrono::steady_clock::now() + std::chrono::milliseconds(timeout_ms);
+    while (true) {
+      const size_t nl = buffer_.find('\n');
+      if (nl != std::string::npos) {
+        std::string line = buffer_.substr(0, nl);
+        buffer_.erase(0, nl + 1);
+        return line;
+      }
+      const auto left = std::chrono::duration_cast<std::chrono::milliseconds>(
+                            deadline - std::chrono::steady_clock::now())
+                            .count();
+      if (left <= 0) return "";
+      pollfd p{from_child_, POLLIN, 0};
+      if (poll(&p, 1, static_cast<int>(left)) <= 0) continue;
+      char buf[4096];
+      const ssize_t n = read(from_child_, buf, sizeof buf);
+      if (n <= 0) return "";
+      buffer_.append(buf, static_cast<size_t>(n));
+    }
+  }
+  void send(const std::string& line) {
+    const std::string text = line + "\n";
+    ASSERT_EQ(write(to_child_, text.data(), text.size()), static_cast<ssize_t>(text.size()));
+  }
+  void close_stdin() {
+    close(to_child_);
+    to_child_ = -1;
+  }
+  int wait_exit() {
+    int status = 0;
+    waitpid(pid_, &status, 0);
+    reaped_ = true;
+    return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
+  }
+
+ private:
+  pid_t pid_ = -1;
+  int to_child_ = -1, from_child_ = -1;
+  bool reaped_ = false;
+  std::string buffer_;
+};
+
+}  // namespace
+
+// The robot protocol of `calibrate --guide stdio`, end to end with the simulated robot: the CLI
+// prints each target pose as a JSON line and does not go on until the controller answers.
+TEST(Cli, RobotStdioProtocolEndToEnd) {
+  Controller c({"calibrate", "--camera", "sim://?seed=13&operator=robot", "--guide", "stdio",
+                "--reply-timeout-s", "60"});
+  ASSERT_TRUE(c.started());
+  int targets = 0, serial = 0;
+  bool sent_garbage = false, skipped = false, expect_new_target = false;
+  nlohmann::json result;
+  while (true) {
+    const std::string line = c.read_line(60000);
+    ASSERT_FALSE(line.empty()) << "no line from the CLI (after " << targets << " targets)";
+    const auto j = nlohmann::json::parse(line);
+    const std::string event = j["event"].get<std::string>();
+    if (event == "result") {
+      result = j;
+      break;
+    }
+    if (event == "protocol_error") {
+      EXPECT_TRUE(sent_garbage && !expect_new_target) << line;
+      c.send("{\"reached\": true}");
+      continue;
+    }
+    ASSERT_EQ(event, "target") << line;
+    expect_new_target = false;
+    ++targets;
+    EXPECT_EQ(j["serial"].get<int>(), ++serial);
+    ASSERT_EQ(j["rvec"].size(), 3u);
+    ASSERT_EQ(j["tvec"].size(), 3u);
+    EXPECT_GT(j["tvec"][2].get<double>(), 0.05) << "the board must be in front of the camera";
+    EXPECT_EQ(j["frame"], "T_cam_board");
+    if (targets == 2) {
+      // While the controller has not answered, the CLI waits: nothing more comes.
+      EXPECT_EQ(c.read_line(700), "");
+    }
+    if (targets == 3 && !sent_garbage) {
+      sent_garbage = true;
+      c.send("where am I?");  // answered with a protocol_error line, then the CLI waits again
+      continue;
+    }
+    if (!skipped && j["state"] == "refining") {
+      // A target the robot cannot reach: skipped, and the next line is the next target.
+      skipped = expect_new_target = true;
+      c.send("skip");
+      continue;
+    }
+    c.send(targets % 2 ? "reached" : "{\"reached\": true}");
+  }
+  EXPECT_EQ(c.wait_exit(), 0);
+  EXPECT_TRUE(result["converged"].get<bool>()) << result.dump();
+  EXPECT_GE(targets, 5);
+  EXPECT_TRUE(sent_garbage);
+  EXPECT_TRUE(skipped);
+}
+
+TEST(Cli, RobotStdioControllerGoneOrAborting) {
+  {
+    Controller c({"calibrate", "--camera", "sim://?seed=14&operator=robot", "--guide", "stdio"});
+    ASSERT_TRUE(c.started());
+    const auto j = nlohmann::json::parse(c.read_line(60000));
+    EXPECT_EQ(j["event"], "target");
+    c.close_stdin();
+    EXPECT_EQ(c.wait_exit(), 2);
+  }
+  {
+    Controller c({"calibrate", "--camera", "sim://?seed=14&operator=robot", "--guide", "stdio"});
+    ASSERT_TRUE(c.started());
+    EXPECT_EQ(nlohmann::json::parse(c.read_line(60000))["event"], "target");
+    c.send("abort");
+    EXPECT_EQ(c.wait_exit(), 2);
+  }
+  {
+    Controller c({"calibrate", "--camera", "sim://?seed=14&operator=robot", "--guide", "stdio",
+                  "--reply-timeout-s", "0.5"});
+    ASSERT_TRUE(c.started());
+    EXPECT_EQ(nlohmann::json::parse(c.read_line(60000))["event"], "target");
+    EXPECT_EQ(c.wait_exit(), 2);  // no reply within 0.5 s
+  }
 }

@@ -150,30 +150,8 @@ std::shared_ptr<const std::vector<uint8_t>> payload(uint32_t fourcc, uint32_t wi
     auto it = cache.find({fourcc, width, height});
     if (it != cache.end()) return it->second;
   }
-  const cv::Mat scene = render_scene(width, height);
-  auto bytes = std::make_shared<std::vector<uint8_t>>();
-  if (fourcc == V4L2_PIX_FMT_MJPEG) {
-    cv::Mat bgr;
-    cv::cvtColor(scene, bgr, cv::COLOR_GRAY2BGR);
-    cv::imencode(".jpg", bgr, *bytes, {cv::IMWRITE_JPEG_QUALITY, 90});
-  } else if (fourcc == V4L2_PIX_FMT_YUYV) {
-    bytes->resize(2u * width * height);
-    for (uint32_t y = 0; y < height; ++y) {
-      const uint8_t* row = scene.ptr<uint8_t>(static_cast<int>(y));
-      uint8_t* out = bytes->data() + 2u * width * y;
-      for (uint32_t x = 0; x < width; ++x) {
-        out[2 * x] = luma(row[x]);
-        out[2 * x + 1] = 128;  // U for even x, V for odd x: neutral
-      }
-    }
-  } else {
-    const uint32_t stride = bytes_per_line(fourcc, width);
-    bytes->assign(static_cast<size_t>(stride) * height, 0);
-    for (uint32_t y = 0; y < height; ++y) {
-      std::memcpy(bytes->data() + static_cast<size_t>(stride) * y, scene.ptr(static_cast<int>(y)),
-                  width);
-    }
-  }
+  auto bytes = std::make_shared<const std::vector<uint8_t>>(
+      encode_payload(fourcc, render_scene(width, height)));
   std::lock_guard<std::mutex> lock(mutex);
   cache[{fourcc, width, height}] = bytes;
   return bytes;
@@ -196,6 +174,36 @@ int fail(int err) {
 }
 
 }  // namespace
+
+std::vector<uint8_t> encode_payload(uint32_t fourcc, const cv::Mat& grey) {
+  CV_Assert(grey.type() == CV_8UC1);
+  const auto width = static_cast<uint32_t>(grey.cols);
+  const auto height = static_cast<uint32_t>(grey.rows);
+  std::vector<uint8_t> bytes;
+  if (fourcc == V4L2_PIX_FMT_MJPEG) {
+    cv::Mat bgr;
+    cv::cvtColor(grey, bgr, cv::COLOR_GRAY2BGR);
+    cv::imencode(".jpg", bgr, bytes, {cv::IMWRITE_JPEG_QUALITY, 90});
+  } else if (fourcc == V4L2_PIX_FMT_YUYV) {
+    bytes.resize(2u * width * height);
+    for (uint32_t y = 0; y < height; ++y) {
+      const uint8_t* row = grey.ptr<uint8_t>(static_cast<int>(y));
+      uint8_t* out = bytes.data() + 2u * width * y;
+      for (uint32_t x = 0; x < width; ++x) {
+        out[2 * x] = luma(row[x]);
+        out[2 * x + 1] = 128;  // U for even x, V for odd x: neutral
+      }
+    }
+  } else {
+    const uint32_t stride = bytes_per_line(fourcc, width);
+    bytes.assign(static_cast<size_t>(stride) * height, 0);
+    for (uint32_t y = 0; y < height; ++y) {
+      std::memcpy(bytes.data() + static_cast<size_t>(stride) * y, grey.ptr(static_cast<int>(y)),
+                  width);
+    }
+  }
+  return bytes;
+}
 
 // ---------------------------------------------------------------------------------------------
 // Device profiles
@@ -349,6 +357,7 @@ struct UvcEmulator::Node {
   uint64_t read_seen = 0;  // read(): frames handed out
   int corrupt = 0;
   Corruption corruption = Corruption::kTruncated;
+  UvcEmulator::PayloadSource source;  // frames from a test instead of the fixed scene
   int stream_error = 0;
   uint64_t state_changes = 0;
 
@@ -531,6 +540,11 @@ void UvcEmulator::fail_stream(const std::string& path, int err) {
   changed_.notify_all();
 }
 
+void UvcEmulator::set_payload_source(const std::string& path, PayloadSource source) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  if (auto n = node_at(path)) n->source = std::move(source);
+}
+
 int UvcEmulator::open_fds() const {
   std::lock_guard<std::mutex> lock(mutex_);
   return static_cast<int>(files_.size());
@@ -614,11 +628,14 @@ void UvcEmulator::produce(Node& n) {
   while (n.produced < due) {
     const uint64_t k = n.produced++;
     if (!n.streaming || n.queued.empty()) continue;
-    if (!data) data = payload(n.fmt.pixelformat, n.fmt.width, n.fmt.height);
+    std::shared_ptr<const std::vector<uint8_t>> sourced;
+    if (n.source) sourced = n.source(static_cast<uint32_t>(k), n.fmt);
+    if (!sourced && !data) data = payload(n.fmt.pixelformat, n.fmt.width, n.fmt.height);
+    const std::vector<uint8_t>& bytes_out = sourced ? *sourced : *data;
     const uint32_t idx = n.queued.front();
     n.queued.pop_front();
     Node::Buffer& b = n.buffers[idx];
-    size_t bytes = std::min(data->size(), b.memory->size());
+    size_t bytes = std::min(bytes_out.size(), b.memory->size());
     b.flags = 0;
     if (n.corrupt > 0) {
       --n.corrupt;
@@ -628,7 +645,7 @@ void UvcEmulator::produce(Node& n) {
         b.flags |= V4L2_BUF_FLAG_ERROR;  // uvcvideo marks frames with errors in their payload
       }
     }
-    std::memcpy(b.memory->data(), data->data(), bytes);
+    std::memcpy(b.memory->data(), bytes_out.data(), bytes);
     b.bytesused = static_cast<uint32_t>(bytes);
     b.sequence = static_cast<uint32_t>(k);
     b.timestamp = to_timeval(n.t0 + std::chrono::duration_cast<Clock::duration>(

@@ -30,6 +30,7 @@
 
 #include <condition_variable>
 #include <cstdint>
+#include <functional>
 #include <map>
 #include <memory>
 #include <mutex>
@@ -96,6 +97,11 @@ DeviceSpec lifecam_metadata_node();
 // frame sizes, no TRY_FMT, no extended controls and no frame-rate control: the old-driver paths.
 DeviceSpec grey_read_node();
 
+// The payload the emulator sends for an 8-bit grey image in `fourcc` at the image's size: MJPEG
+// is the JPEG of the image (cv::imencode, quality 90), YUYV its BT.601 limited-range luma with
+// neutral chroma, GREY its rows padded to 32 bytes.
+std::vector<uint8_t> encode_payload(uint32_t fourcc, const cv::Mat& grey);
+
 enum class Call { kOpen, kClose, kIoctl, kMmap, kMunmap, kPoll, kRead };
 enum class Corruption { kTruncated, kErrorFlag };
 
@@ -117,6 +123,15 @@ class UvcEmulator final : public V4l2Io {
   void corrupt_next_frames(const std::string& path, int count, Corruption how);
   // The stream fails: DQBUF/read return `err` (EIO: a USB transfer error), poll() POLLERR.
   void fail_stream(const std::string& path, int err);
+
+  // Frames from a test instead of the fixed scene (closed-loop tests): while streaming with
+  // mmap buffers, every frame the sensor puts into a queued buffer is `source(sequence, format)`,
+  // the payload in the node's current format (encode_payload). Called under the emulator's lock
+  // on the thread that polls or dequeues, so it must not call the emulator. nullptr: the fixed
+  // scene. read() I/O always sends the fixed scene.
+  using PayloadSource = std::function<std::shared_ptr<const std::vector<uint8_t>>(
+      uint32_t sequence, const v4l2_pix_format& format)>;
+  void set_payload_source(const std::string& path, PayloadSource source);
 
   // Audit.
   int open_fds() const;

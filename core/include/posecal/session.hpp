@@ -53,6 +53,7 @@ class CalibrationSession {
 
  private:
   void ensure_engine(cv::Size size);
+  FrameReport process(const cv::Mat& image, std::shared_ptr<void> hold);
   void emit(const SessionEvent& e);
 
   std::unique_ptr<Camera> camera_;
@@ -65,6 +66,7 @@ class CalibrationSession {
   bool disconnected_ = false;
   uint64_t frames_ = 0;
   cv::Mat last_frame_;
+  std::shared_ptr<void> last_hold_;  // keeps a zero-copy backend buffer alive with last_frame_
   std::chrono::steady_clock::time_point t0_;
 };
 

@@ -2,32 +2,37 @@
 // while a calibration session runs on every one.
 //
 // For N = 1, 2, 3, ... : N simulated cameras (Aravis' GigE Vision simulator, in this process, one
-// thread each) on 127.0.0.1 ... 127.0.0.N, each sending the board of its own closed loop (an
-// engine-guided simulated operator and a renderer, tests/aravis/guided_loop.hpp; 1280x720
+// thread each) on 127.0.0.1 ... 127.0.0.N, each sending the board of its own operator (an
+// engine-guided simulated person or robot and a renderer, tests/aravis/guided_loop.hpp; 1280x720
 // Mono8, noise 2, blur 0.8, a camera sampled around the C525 per seed) at the simulator's frame
 // rate (--fps); N sessions, each on its own thread, open their camera through
-// make_aravis_backend() by address and calibrate until convergence. It stops after the first N
-// at which a camera fails (no convergence, a result outside 5 sigma, a frame not bit-identical
-// to what was sent) or falls below the frame rate (see "Criteria" in --help).
+// make_aravis_backend() by address and calibrate until convergence. By default the operators
+// run free: one step per frame the camera sends, with the latest guidance, rendered ahead on a
+// thread per camera (GuidedScene::prepare_next), so the camera's clock paces everything, a
+// session that falls behind misses frames, and a renderer that falls behind makes its camera
+// send the previous image again ("late"). --lockstep 1 couples operator and engine as the
+// tests do, which puts the renderer's latency into every step. It stops after the
+// first N at which a camera fails (no convergence, a result outside 5 sigma, a frame not
+// bit-identical to what was sent) or falls below the frame rate (see usage()).
 //
 // Each simulator needs its own address, so the program re-executes itself under `unshare -n`
 // (a private network namespace; root only), brings that namespace's loopback up and adds the
 // addresses there; the machine's own interfaces are never touched.
 //
-// CPU: getrusage(RUSAGE_SELF) over the round, minus the simulator threads' own CPU time
-// (CLOCK_THREAD_CPUTIME_ID read in their fill callbacks: rendering, encoding, sending, and on
-// loopback the kernel's receive work, which runs in the sender's context). What remains is the
-// receiving and calibrating side: Aravis' stream threads, the backend's threads and the sessions.
+// CPU: getrusage(RUSAGE_SELF) over the round, split into the session threads' CPU time (engine,
+// session, frame checks; CLOCK_THREAD_CPUTIME_ID at their end), the simulators' (their threads,
+// read in the fill callbacks: copying and sending, and on loopback the kernel's receive work,
+// which runs in the sender's context; plus the render threads) and the rest (Aravis' stream
+// threads, the backend's pump, supervisor and heartbeat). OpenCV's own worker threads are off by
+// default (--opencv-threads 0), so that each session and each simulator is one thread and this
+// split holds.
 //
 //   bench_calibration_aravis [--fps 15] [--max-cameras 8] [--only N] [--operator person|robot]
-//                            [--seed 1] [--limit-s 180]
+//                            [--seed 1] [--limit-s 180] [--supersample 2] [--opencv-threads 0]
+//                            [--lockstep 0] [--udp-socket 0]
 #include <arv.h>
-#include <spawn.h>
 #include <sys/resource.h>
-#include <sys/stat.h>
-#include <sys/wait.h>
 #include <time.h>
-#include <unistd.h>
 
 #include <algorithm>
 #include <atomic>
@@ -36,21 +41,18 @@
 #include <cstdio>
 #include <cstdlib>
 #include <cstring>
-#include <filesystem>
 #include <fstream>
-#include <map>
 #include <opencv2/core/utility.hpp>
 #include <string>
 #include <thread>
 #include <vector>
 
 #include "guided_aravis.hpp"
+#include "netns.hpp"
 #include "posecal/aravis_backend.hpp"
 #include "posecal/error.hpp"
 #include "posecal/metrics.hpp"
 #include "posecal/session.hpp"
-
-extern char** environ;
 
 using namespace posecal;
 using namespace posecal::testing;
@@ -69,25 +71,33 @@ struct Args {
   // OpenCV's own worker threads: 0 runs its functions on the calling thread, so that every
   // session and simulator is one thread and the CPU accounting per thread holds.
   int opencv_threads = 0;
-  bool thread_report = false;  // per-thread CPU time of the threads alive at a round's end
+  // false: free-running operators (one step per frame the camera sends; the engine must keep up
+  // with the camera). true: lockstep as in the tests (a step per frame the engine processed, so
+  // the renderer's latency is part of every step).
+  bool lockstep = false;
+  bool udp_socket = false;  // Aravis' UDP socket instead of its packet socket (packet_socket=0)
 };
 
-// A camera keeps up if its stream delivers at least this fraction of the frame rate and the
-// engine processes at least this fraction of the frames it could (see usage()).
+// A camera keeps up if its stream delivers at least kStreamFraction of the frame rate and its
+// session processes new frames at no less than kEngineFraction of the frame rate over the whole
+// session and at the full rate in the median second (see usage()).
 constexpr double kStreamFraction = 0.98;
-constexpr double kEngineFraction = 0.90;
+constexpr double kEngineFraction = 0.95;
 
 void usage() {
   std::fprintf(
       stderr,
       "usage: bench_calibration_aravis [--fps F] [--max-cameras N] [--only N] "
       "[--operator person|robot] [--seed S] [--limit-s S] [--supersample 1|2]\n"
-      "       [--opencv-threads 0] [--thread-report 0|1]\n"
-      "Root only (private network namespace). A camera keeps up if its session converged with\n"
-      "every intrinsic within 5 sigma of the truth and every processed frame bit-identical to the\n"
-      "one sent, its stream delivered >= %.0f%% of --fps complete frames per second, the engine\n"
-      "processed new frames at >= %.0f%% of --fps over the whole session, and at --fps (rounded)\n"
-      "in the median second.\n",
+      "       [--opencv-threads 0] [--lockstep 0|1] [--udp-socket 0|1]\n"
+      "Root only (private network namespace). A camera fails if its session does not converge,\n"
+      "puts an intrinsic outside 5 sigma of the truth or processes a frame that is not\n"
+      "bit-identical to the one sent. It falls below the frame rate if its stream delivers less\n"
+      "than %.0f%% of --fps complete frames per second, or its session processes new frames at\n"
+      "less than %.0f%% of --fps over the session or at less than --fps in the median second.\n"
+      "A new frame is lost either in the session (missed: it arrived, the session never took\n"
+      "it) or in the simulator (late: its renderer was not ready, the camera sent the previous\n"
+      "image again, which happens when the machine is short of CPU).\n",
       100 * kStreamFraction, 100 * kEngineFraction);
 }
 
@@ -114,16 +124,19 @@ bool parse(int argc, char** argv, Args* a) {
       a->limit_s = std::atof(v);
     } else if (k == "--supersample") {
       a->supersample = std::atoi(v);
+    } else if (k == "--udp-socket") {
+      a->udp_socket = std::string(v) == "1";
+    } else if (k == "--lockstep") {
+      a->lockstep = std::string(v) == "1";
     } else if (k == "--opencv-threads") {
       a->opencv_threads = std::atoi(v);
-    } else if (k == "--thread-report") {
-      a->thread_report = std::string(v) == "1";
+
     } else {
       return false;
     }
   }
-  return a->fps > 0 && a->supersample >= 1 && a->supersample <= 4 && a->max_cameras >= 1 && a->max_cameras <= 250 && a->only >= 0 &&
-         a->only <= 250 && a->limit_s > 0;
+  return a->fps > 0 && a->supersample >= 1 && a->supersample <= 4 && a->max_cameras >= 1 &&
+         a->max_cameras <= 250 && a->only >= 0 && a->only <= 250 && a->limit_s > 0;
 }
 
 double cpu_seconds() {
@@ -151,36 +164,6 @@ double median(std::vector<double> v) {
   return v.size() % 2 ? v[v.size() / 2] : 0.5 * (v[v.size() / 2 - 1] + v[v.size() / 2]);
 }
 
-std::string netns_inode() {
-  struct stat st {};
-  if (::stat("/proc/self/ns/net", &st) != 0) return "";
-  return std::to_string(st.st_ino);
-}
-
-std::string self_exe() {
-  char buf[4096];
-  const ssize_t n = ::readlink("/proc/self/exe", buf, sizeof buf - 1);
-  return n > 0 ? std::string(buf, static_cast<size_t>(n)) : "";
-}
-
-// Runs a program (PATH lookup) with extra environment and waits for it; its exit status, 126 if
-// it could not be started.
-int run(const std::vector<std::string>& args, const std::vector<std::string>& extra_env = {}) {
-  std::vector<char*> argv;
-  for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
-  argv.push_back(nullptr);
-  std::vector<std::string> env_strings = extra_env;
-  for (char** e = environ; *e != nullptr; ++e) env_strings.emplace_back(*e);
-  std::vector<char*> envp;
-  for (auto& e : env_strings) envp.push_back(e.data());
-  envp.push_back(nullptr);
-  pid_t pid = 0;
-  if (::posix_spawnp(&pid, argv[0], nullptr, nullptr, argv.data(), envp.data()) != 0) return 126;
-  int status = 0;
-  ::waitpid(pid, &status, 0);
-  return WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
-}
-
 // The simulator thread's CPU time between its first and its latest fill.
 struct SimulatorCpu {
   std::atomic<double> first{-1};
@@ -188,41 +171,21 @@ struct SimulatorCpu {
   double seconds() const { return first.load() < 0 ? 0 : latest.load() - first.load(); }
 };
 
-// utime + stime of every thread of this process, by name.
-void print_thread_report() {
-  const long ticks = sysconf(_SC_CLK_TCK);
-  std::map<std::string, std::pair<int, double>> by_name;
-  for (const auto& entry : std::filesystem::directory_iterator("/proc/self/task")) {
-    std::ifstream stat(entry.path() / "stat");
-    std::string text((std::istreambuf_iterator<char>(stat)), std::istreambuf_iterator<char>());
-    const size_t open = text.find('('), close = text.rfind(')');
-    if (open == std::string::npos || close == std::string::npos) continue;
-    const std::string name = text.substr(open + 1, close - open - 1);
-    unsigned long utime = 0, stime = 0;
-    if (std::sscanf(text.c_str() + close + 2, "%*c %*d %*d %*d %*d %*d %*u %*u %*u %*u %*u %lu %lu",
-                    &utime, &stime) != 2)
-      continue;
-    auto& [count, seconds] = by_name[name];
-    ++count;
-    seconds += static_cast<double>(utime + stime) / ticks;
-  }
-  for (const auto& [name, v] : by_name) {
-    std::printf("#   thread %-20s x%-3d %7.2f s CPU (since it started)\n", name.c_str(), v.first, v.second);
-  }
-}
-
 struct CameraRun {
   uint64_t seed = 0;
   EngineState state = EngineState::kWaitingForBoard;
   bool honest = false;
   int keyframes = 0;
-  uint64_t frames = 0;     // processed by the engine
-  uint64_t received = 0;   // complete frames from the stream (processed, repeats, queue drops)
+  uint64_t frames = 0;    // processed by the engine
+  uint64_t received = 0;  // complete frames from the stream (processed, repeats, queue drops)
   uint64_t incomplete = 0;
+  uint64_t missed = 0;  // frames the camera sent that the engine never processed
+  uint64_t late = 0;    // frames sent again because the next one was not rendered in time
+                        // (lockstep: because the engine had not processed the last one)
   uint64_t exact = 0;
-  double session_s = 0;    // first frame to the end
+  double session_s = 0;  // first frame to the end
   double eps_gt = -1;
-  double thread_cpu_s = 0;  // the session thread's CPU time (engine, session, frame checks)
+  double thread_cpu_s = 0;      // the session thread's CPU time (engine, session, frame checks)
   std::vector<double> frame_s;  // when each frame was processed, from the first
   std::string problem;
 
@@ -272,6 +235,8 @@ void run_session(std::unique_ptr<GuidedCamera> guided, const std::shared_ptr<Gui
     out->frames = s.frames_processed();
     out->received = g.delivered + g.repeats_skipped + cs.frames_dropped;
     out->incomplete = cs.frames_incomplete;
+    out->missed = g.step_gaps;
+    out->late = scene->stats().repeats;
     out->exact = g.exact;
     out->session_s = first ? std::chrono::duration<double>(t_end - t_first).count() : 0;
     if (!cam->first_problem().empty()) out->problem = cam->first_problem();
@@ -284,7 +249,8 @@ void run_session(std::unique_ptr<GuidedCamera> guided, const std::shared_ptr<Gui
         out->eps_gt = ground_truth_error(truth, r->model);
         out->honest = true;
         for (int i = 0; i < truth.num_params(); ++i) {
-          out->honest &= std::abs(r->model.params()[i] - truth.params()[i]) < 5 * r->std_scaled[i] + 1e-12;
+          out->honest &=
+              std::abs(r->model.params()[i] - truth.params()[i]) < 5 * r->std_scaled[i] + 1e-12;
         }
       }
     }
@@ -309,6 +275,7 @@ Round run_round(const Args& args, int n) {
   for (int i = 0; i < n; ++i) {
     GuidedSceneOptions options = c525_scene(args.seed + i, args.kind);
     options.render.supersample = args.supersample;
+    options.lockstep = args.lockstep;
     scenes.push_back(std::make_shared<GuidedScene>(options, mono8_encoder()));
     sim_cpu.push_back(std::make_unique<SimulatorCpu>());
     auto source = guided_source(scenes.back());
@@ -321,14 +288,29 @@ Round run_round(const Args& args, int n) {
       return payload;
     };
     const std::string address = "127.0.0." + std::to_string(i + 1);
-    fakes.push_back(std::make_unique<FakeGvCamera>("PCAL-B" + std::to_string(i + 1), address, timed));
+    fakes.push_back(
+        std::make_unique<FakeGvCamera>("PCAL-B" + std::to_string(i + 1), address, timed));
     if (!fakes.back()->start()) throw Error(ErrorCode::kDevice, "no simulator on " + address);
+  }
+  // Free-running operators render ahead on a thread per camera, so that each simulator sends
+  // on its clock's tick (GuidedScene::prepare_next).
+  std::vector<std::thread> renderers;
+  std::vector<double> render_cpu(n, 0.0);
+  if (!args.lockstep) {
+    for (int i = 0; i < n; ++i) {
+      renderers.emplace_back([scene = scenes[i], cpu = &render_cpu[i]] {
+        while (scene->prepare_next()) {
+        }
+        *cpu = thread_cpu_seconds();
+      });
+    }
   }
   CameraManager manager;
   manager.add_backend(make_aravis_backend());
   std::vector<std::unique_ptr<GuidedCamera>> cameras;
   for (int i = 0; i < n; ++i) {
-    std::unique_ptr<Camera> cam = manager.open("aravis://" + fakes[i]->address());
+    std::unique_ptr<Camera> cam = manager.open("aravis://" + fakes[i]->address() +
+                                               (args.udp_socket ? "?packet_socket=0" : ""));
     cam->configure(guided_config(*scenes[i], args.fps));
     cameras.push_back(std::make_unique<GuidedCamera>(std::move(cam), scenes[i],
                                                      mono8_decoder(scenes[i]->truth().size())));
@@ -340,43 +322,38 @@ Round run_round(const Args& args, int n) {
   std::vector<std::thread> threads;
   for (int i = 0; i < n; ++i) {
     round.runs[i].seed = args.seed + i;
-    threads.emplace_back(run_session, std::move(cameras[i]), scenes[i], args.limit_s, &round.runs[i]);
+    threads.emplace_back(run_session, std::move(cameras[i]), scenes[i], args.limit_s,
+                         &round.runs[i]);
   }
   for (auto& t : threads) t.join();
   round.wall_s = std::chrono::duration<double>(Clock::now() - t0).count();
   round.cpu_s = cpu_seconds() - cpu0;
-  if (args.thread_report) print_thread_report();
+  for (auto& scene : scenes) scene->stop_preparing();
+  for (auto& t : renderers) t.join();
   for (const auto& c : sim_cpu) round.simulator_cpu_s += c->seconds();
+  for (double c : render_cpu) round.simulator_cpu_s += c;
   for (const auto& r : round.runs) round.session_cpu_s += r.thread_cpu_s;
   for (auto& f : fakes) f->stop();
   return round;
 }
 
 bool keeps_up(const CameraRun& r, double fps) {
-  return r.ok() && r.stream_fps() >= kStreamFraction * fps && r.engine_fps() >= kEngineFraction * fps &&
-         r.median_second_fps() >= std::round(fps);
+  return r.ok() && r.stream_fps() >= kStreamFraction * fps &&
+         r.engine_fps() >= kEngineFraction * fps && r.median_second_fps() >= std::round(fps);
 }
 
 // Inside the private network namespace.
-int bench(const Args& args) {
+int run_rounds(const Args& args) {
   const int first = args.only > 0 ? args.only : 1;
   const int last = args.only > 0 ? args.only : args.max_cameras;
-  if (run({"ip", "link", "set", "lo", "up"}) != 0) {
-    std::fprintf(stderr, "cannot bring the namespace's loopback up\n");
-    return 1;
-  }
-  for (int i = 2; i <= last; ++i) {
-    if (run({"ip", "addr", "add", "127.0.0." + std::to_string(i) + "/8", "dev", "lo"}) != 0) {
-      std::fprintf(stderr, "cannot add 127.0.0.%d to the namespace's loopback\n", i);
-      return 1;
-    }
-  }
-  std::printf("# %s operator, 1280x720 Mono8 at %.0f fps per camera, render supersampling %d, "
-              "OpenCV threads %d, seeds %llu.., %u hardware threads, load average %s\n",
-              args.kind == OperatorKind::kRobot ? "robot" : "person", args.fps, args.supersample,
-              cv::getNumThreads(),
-              static_cast<unsigned long long>(args.seed), std::thread::hardware_concurrency(),
-              load_average().c_str());
+  std::printf(
+      "# %s operator (%s), 1280x720 Mono8 at %.0f fps per camera, Aravis %s, render "
+      "supersampling %d, OpenCV threads %d, seeds %llu.., %u hardware threads, load average %s\n",
+      args.kind == OperatorKind::kRobot ? "robot" : "person",
+      args.lockstep ? "lockstep" : "free-running", args.fps,
+      args.udp_socket ? "UDP socket" : "packet socket", args.supersample, args.opencv_threads,
+      static_cast<unsigned long long>(args.seed), std::thread::hardware_concurrency(),
+      load_average().c_str());
   int verdict = 0;
   for (int n = first; n <= last; ++n) {
     Round r;
@@ -386,24 +363,29 @@ int bench(const Args& args) {
       std::fprintf(stderr, "N=%d: %s\n", n, e.what());
       return 1;
     }
-    std::printf("%3s %4s %10s %3s %6s %9s %10s %10s %10s %10s %6s %8s %s\n", "N", "seed", "state",
-                "kf", "frames", "session_s", "engine_fps", "median_s", "stream_fps", "incomplete",
-                "exact", "eps_gt", "problem");
+    std::printf("%3s %4s %10s %3s %6s %6s %5s %9s %10s %8s %10s %10s %6s %8s %s\n", "N", "seed",
+                "state", "kf", "frames", "missed", "late", "session_s", "engine_fps", "median_s",
+                "stream_fps", "incomplete", "exact", "eps_gt", "problem");
     std::vector<double> engine_fps, median_fps, stream_fps;
-    uint64_t frames = 0;
+    uint64_t frames = 0, missed = 0, late = 0;
     bool all_keep_up = true;
     for (const CameraRun& c : r.runs) {
-      std::printf("%3d %4llu %10s %3d %6llu %9.1f %10.2f %10.0f %10.2f %10llu %6llu %8.3f %s\n", n,
-                  static_cast<unsigned long long>(c.seed), engine_state_name(c.state), c.keyframes,
-                  static_cast<unsigned long long>(c.frames), c.session_s, c.engine_fps(),
-                  c.median_second_fps(), c.stream_fps(),
-                  static_cast<unsigned long long>(c.incomplete),
-                  static_cast<unsigned long long>(c.exact), c.eps_gt,
-                  c.ok() ? "" : (c.problem.empty() ? (c.honest ? "not converged" : "outside 5 sigma") : c.problem.c_str()));
+      std::printf(
+          "%3d %4llu %10s %3d %6llu %6llu %5llu %9.1f %10.2f %8.0f %10.2f %10llu %6llu %8.3f %s\n",
+          n, static_cast<unsigned long long>(c.seed), engine_state_name(c.state), c.keyframes,
+          static_cast<unsigned long long>(c.frames), static_cast<unsigned long long>(c.missed),
+          static_cast<unsigned long long>(c.late), c.session_s, c.engine_fps(),
+          c.median_second_fps(), c.stream_fps(), static_cast<unsigned long long>(c.incomplete),
+          static_cast<unsigned long long>(c.exact), c.eps_gt,
+          c.ok() ? ""
+                 : (c.problem.empty() ? (c.honest ? "not converged" : "outside 5 sigma")
+                                      : c.problem.c_str()));
       engine_fps.push_back(c.engine_fps());
       median_fps.push_back(c.median_second_fps());
       stream_fps.push_back(c.stream_fps());
       frames += c.frames;
+      missed += c.missed;
+      late += c.late;
       all_keep_up &= keeps_up(c, args.fps);
     }
     const double other_cpu = r.cpu_s - r.simulator_cpu_s - r.session_cpu_s;
@@ -412,14 +394,16 @@ int bench(const Args& args) {
         "N=%d: engine %.2f fps (median over cameras; min %.2f), median second %.0f fps (min %.0f), "
         "stream %.2f fps (min %.2f); CPU per processed frame: %.1f ms sessions (engine, checks) + "
         "%.1f ms transport (Aravis, backend threads) = %.1f ms, simulators %.1f ms; process "
-        "%.0f%% of one core over %.1f s; load average at the end %s; %s\n\n",
+        "%.0f%% of one core over %.1f s; missed %llu of %llu new frames; simulators late on "
+        "%llu; load average at the end %s; %s\n\n",
         n, median(engine_fps), *std::min_element(engine_fps.begin(), engine_fps.end()),
         median(median_fps), *std::min_element(median_fps.begin(), median_fps.end()),
         median(stream_fps), *std::min_element(stream_fps.begin(), stream_fps.end()),
         per_frame_ms(r.session_cpu_s), per_frame_ms(other_cpu),
         per_frame_ms(r.session_cpu_s + other_cpu), per_frame_ms(r.simulator_cpu_s),
-        100 * r.cpu_s / r.wall_s, r.wall_s, load_average().c_str(),
-        all_keep_up ? "every camera keeps up" : "NOT KEPT UP");
+        100 * r.cpu_s / r.wall_s, r.wall_s, static_cast<unsigned long long>(missed),
+        static_cast<unsigned long long>(frames + missed), static_cast<unsigned long long>(late),
+        load_average().c_str(), all_keep_up ? "every camera keeps up" : "NOT KEPT UP");
     std::fflush(stdout);
     if (!all_keep_up) {
       verdict = n;
@@ -444,22 +428,9 @@ int main(int argc, char** argv) {
     usage();
     return 2;
   }
-  const char* parent = std::getenv("POSECAL_BENCH_PARENT_NETNS");
-  if (parent == nullptr) {
-    if (::geteuid() != 0) {
-      std::fprintf(stderr, "needs root: each simulator needs its own address, which only a "
-                           "private network namespace (unshare -n) provides\n");
-      return 77;
-    }
-    std::vector<std::string> cmd = {"unshare", "-n", "--", self_exe()};
-    for (int i = 1; i < argc; ++i) cmd.emplace_back(argv[i]);
-    return run(cmd, {"POSECAL_BENCH_PARENT_NETNS=" + netns_inode()});
-  }
-  // Never add addresses to the machine's own interfaces.
-  if (netns_inode() == parent) {
-    std::fprintf(stderr, "not in a private network namespace\n");
-    return 1;
-  }
+  const int status = posecal::bench::enter_private_network(
+      argc, argv, args.only > 0 ? args.only : args.max_cameras);
+  if (status >= 0) return status;
   cv::setNumThreads(args.opencv_threads);
-  return bench(args);
+  return run_rounds(args);
 }

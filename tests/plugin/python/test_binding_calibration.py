@@ -1,0 +1,169 @@
+"""Complete calibrations through the Python binding: sim:// to convergence, a station of two
+cameras on two threads, host-fed frames, robot mode, and the example station script.
+
+Run by ctest (plugin_python_calibration) with PYTHONPATH=plugin/python, POSECAL_LIBRARY and
+POSECAL_SOURCE_DIR set.
+"""
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import unittest
+
+import posecal
+
+SOURCE_DIR = os.environ.get("POSECAL_SOURCE_DIR",
+                            os.path.join(os.path.dirname(__file__), "..", "..", ".."))
+
+
+class Calibration(unittest.TestCase):
+    def setUp(self):
+        self.ctx = posecal.Context()
+        self.tmp = tempfile.TemporaryDirectory()
+
+    def tearDown(self):
+        self.ctx.close()
+        self.tmp.cleanup()
+
+    def test_sim_calibration_converges(self):
+        with self.ctx.open("sim://?seed=5") as s:
+            events = list(s)  # steps until the calibration finishes
+            kinds = [e.kind for e in events]
+            self.assertIn("captured", kinds)
+            self.assertIn("parameter_converged", kinds)
+            last_state = [e.data for e in events if e.kind == "state_changed"][-1]
+            self.assertEqual(last_state["to"], "converged")
+            self.assertTrue(s.finished)
+            self.assertTrue(s.converged)
+            self.assertIsNone(s.target_pose)
+            self.assertFalse(s.step())  # finished: nothing more to do
+            r = s.result
+            self.assertTrue(r["converged"])
+            self.assertGreaterEqual(r["keyframes"], 5)
+            for k in ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"):
+                self.assertIsInstance(r[k], float)
+                self.assertIsInstance(r["std"][k], float)
+            self.assertLess(r["eps_test"], 0.2)
+            self.assertLess(r["eps_gt"], 2.0)
+            self.assertAlmostEqual(r["fx"], r["ground_truth"]["fx"], delta=5.0)
+            yml = os.path.join(self.tmp.name, "cam.yml")
+            s.save(yml)
+            s.save(os.path.join(self.tmp.name, "cam.json"))
+            frame, w, h, stride = s.last_frame(with_overlay=True)
+            self.assertEqual((w, h, len(frame)), (1280, 720, 1280 * 720 * 3))
+        # The saved file, evaluated on the same simulated camera, gives the session's errors.
+        ev = self.ctx.evaluate(yml, "sim://?seed=5")
+        self.assertEqual(ev["source"], "sim_test_set")
+        self.assertAlmostEqual(ev["eps_gt"], r["eps_gt"], places=5)
+        self.assertAlmostEqual(ev["eps_test"], r["eps_test"], places=5)
+
+    def test_fed_frames_give_the_same_calibration(self):
+        # A host feeding a simulated camera's frames into an "external" session gets exactly the
+        # calibration of the simulated session: same frames, same engine. Formats and buffer
+        # kinds vary frame by frame.
+        cfg = {"target_timeout_frames": 36}  # what sim:// sessions use (docs/c-api.md)
+        with self.ctx.open("sim://?seed=8", **cfg) as sim, self.ctx.open("external", **cfg) as ext:
+            n = 0
+            while sim.step():
+                fmt = (posecal.PixelFormat.MONO8, posecal.PixelFormat.BGR8,
+                       posecal.PixelFormat.RGB8)[n % 3]
+                buf, w, h, stride = sim.last_frame(fmt)
+                if fmt == posecal.PixelFormat.MONO8:
+                    ext.feed(bytes(buf), w, h, format=fmt)
+                elif fmt == posecal.PixelFormat.BGR8:
+                    ext.feed(buf, w, h, stride, fmt)
+                else:
+                    ext.feed(memoryview(buf), w, h, stride, fmt)
+                n += 1
+                self.assertLess(n, 2000)
+            self.assertTrue(ext.finished)
+            a, b = sim.status, ext.status
+            self.assertTrue(b["converged"])
+            self.assertEqual(a["keyframes"], b["keyframes"])
+            for k in ("fx", "fy", "cx", "cy", "k1"):
+                self.assertAlmostEqual(a["parameters"][k]["value"], b["parameters"][k]["value"],
+                                       places=9)
+            kinds = [e.kind for e in ext.pending_events()]
+            self.assertIn("captured", kinds)
+
+    def test_robot_session(self):
+        # The robot side of the binding: target poses and pose_reached, up to the refinement.
+        with self.ctx.open("sim://?seed=9&operator=robot") as s:
+            targets = reached_ok = 0
+            while s.step() and s.status["state"] != "refining":
+                pose = s.target_pose
+                if pose is None:
+                    continue
+                targets += 1
+                rvec, tvec = pose
+                self.assertEqual((len(rvec), len(tvec)), (3, 3))
+                self.assertGreater(tvec[2], 0.05)  # in front of the camera
+                try:
+                    s.pose_reached()
+                    reached_ok += 1
+                except posecal.StateError:
+                    pass
+            self.assertEqual(s.status["state"], "refining")
+            self.assertGreaterEqual(s.status["keyframes"], 2)
+            self.assertIsNotNone(s.result)
+            self.assertGreater(targets, 3)
+            self.assertGreater(reached_ok, 3)
+            with self.assertRaises(posecal.InvalidArgumentError):
+                self.ctx.open("sim://?operator=robot", operator="person")
+            s.skip_target()  # allowed while refining
+
+    def test_calibrate_images(self):
+        data = "/usr/share/doc/opencv-doc/examples/data"
+        if not os.path.exists(os.path.join(data, "left01.jpg")):
+            self.skipTest("opencv-doc is not installed")
+        d = os.path.join(self.tmp.name, "left")
+        os.makedirs(d)
+        for name in sorted(os.listdir(data)):
+            if name.startswith("left") and name.endswith(".jpg") and len(name) == 10:
+                os.symlink(os.path.join(data, name), os.path.join(d, name))
+        with self.ctx.calibrate_images(d, target="chessboard:9x6:0.025") as cal:
+            r = cal.result
+            self.assertGreaterEqual(r["frames_used"], 10)
+            self.assertLess(r["rms"], 0.5)
+            cal.save(os.path.join(self.tmp.name, "left.yml"))
+        ev = self.ctx.evaluate(os.path.join(self.tmp.name, "left.yml"), "images://" + d,
+                               target="chessboard:9x6:0.025", frames=30)
+        self.assertEqual(ev["source"], "camera")
+        self.assertGreaterEqual(ev["test_frames"], 10)
+        self.assertIsNone(ev["eps_gt"])
+        self.assertLess(ev["eps_test"], 0.5)
+
+
+class StationExample(unittest.TestCase):
+    def test_example_station_script_four_cameras(self):
+        # docs/examples/station.py: four simulated cameras calibrated concurrently from Python
+        # threads (one Session each, one shared Context), a file per camera and a summary.
+        script = os.path.join(SOURCE_DIR, "docs", "examples", "station.py")
+        with tempfile.TemporaryDirectory() as tmp:
+            r = subprocess.run(
+                [sys.executable, script, "--cameras",
+                 "sim://?seed=41, sim://?seed=42,sim://?seed=43,sim://?seed=44&operator=robot",
+                 "--out-dir", tmp, "--json"],
+                capture_output=True, text=True, timeout=600)
+            self.assertEqual(r.returncode, 0, r.stderr)
+            summary = json.loads(r.stdout)
+            self.assertEqual(summary["total"], 4)
+            self.assertEqual(summary["converged"], 4)
+            files = sorted(os.path.basename(c["file"]) for c in summary["cameras"])
+            self.assertEqual(files, ["sim-41.yml", "sim-42.yml", "sim-43.yml", "sim-44.yml"])
+            for c in summary["cameras"]:
+                self.assertIsNone(c["error"])
+                self.assertTrue(os.path.getsize(c["file"]) > 100)
+                self.assertLess(c["eps_test"], 0.3)
+            # The calibrations overlapped in time: they ran on concurrent threads.
+            spans = [(c["started_s"], c["finished_s"]) for c in summary["cameras"]]
+            latest_start = max(a for a, _ in spans)
+            earliest_end = min(b for _, b in spans)
+            self.assertLess(latest_start, earliest_end, spans)
+            with open(os.path.join(tmp, "summary.json")) as f:
+                self.assertEqual(json.load(f)["converged"], 4)
+
+
+if __name__ == "__main__":
+    unittest.main()
