@@ -175,6 +175,10 @@ void print_usage() {
       "      list the cameras of every backend\n"
       "  version\n"
       "\n"
+      "pose selection (calibrate --camera, station, simulate): [--threshold R (0.1)]\n"
+      "      [--max-keyframes N (20)] [--candidates N (6)] [--target-timeout-frames N]\n"
+      "      [--fix P,P,... e.g. k2,k3: held at their initial value, 0 for distortion]\n"
+      "\n"
       "SPEC: charuco:COLSxROWS:SQUARE_M:MARKER_M:DICT (default "
       "charuco:9x6:0.028:0.0182:DICT_4X4_50)\n"
       "      chessboard:COLSxROWS:SQUARE_M (inner corners), e.g. chessboard:9x6:0.025\n"
@@ -242,6 +246,20 @@ Json session_config(const Args& args) {
   if (args.has("candidates")) cfg["pose_candidates"] = args.integer("candidates", 6, 1, 64);
   if (args.has("target-timeout-frames")) {
     cfg["target_timeout_frames"] = args.integer("target-timeout-frames", 0, 0, 1000000);
+  }
+  if (args.has("fix")) {
+    // A comma-separated list; the library names an unknown parameter.
+    Json names = Json::array();
+    const std::string list = args.get("fix");
+    size_t start = 0;
+    while (start <= list.size()) {
+      const size_t comma = std::min(list.find(',', start), list.size());
+      const std::string name = list.substr(start, comma - start);
+      if (name.empty()) throw UsageError{"--fix: empty parameter name in '" + list + "'"};
+      names.push_back(name);
+      start = comma + 1;
+    }
+    cfg["fixed"] = names;
   }
   return cfg;
 }
@@ -970,19 +988,19 @@ int main(int argc, char** argv) {
           argc, argv, 2,
           {"json", "fix-principal-point", "fix-aspect-ratio", "zero-tangential", "no-window"},
           {"images", "target", "out", "camera", "guide", "timeout-ms", "max-seconds", "threshold",
-           "max-keyframes", "candidates", "target-timeout-frames", "reply-timeout-s"}));
+           "max-keyframes", "candidates", "target-timeout-frames", "reply-timeout-s", "fix"}));
     }
     if (cmd == "simulate") {
       return cmd_simulate(
           Args(argc, argv, 2, {"json", "events"},
                {"camera-model", "seed", "operator", "noise", "blur", "out", "target", "threshold",
-                "max-keyframes", "max-frames", "candidates", "target-timeout-frames"}));
+                "max-keyframes", "max-frames", "candidates", "target-timeout-frames", "fix"}));
     }
     if (cmd == "station") {
       return cmd_station(
           Args(argc, argv, 2, {"json", "events"},
                {"cameras", "out-dir", "target", "format", "max-seconds", "timeout-ms", "threshold",
-                "max-keyframes", "candidates", "target-timeout-frames"}));
+                "max-keyframes", "candidates", "target-timeout-frames", "fix"}));
     }
     if (cmd == "evaluate") {
       return cmd_evaluate(

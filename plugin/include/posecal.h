@@ -202,7 +202,9 @@ typedef struct posecal_image {
  *   "operator": "person" | "robot"   (robot: the host reports poses reached),
  *   "convergence_threshold" (0.1), "max_keyframes" (20), "jaccard_threshold" (0.8),
  *   "still_motion_px" (1.5), "constraint_factor" (5), "target_timeout_frames" (0 = never),
- *   "pose_candidates" (6), "lock_settings" (true), "max_tilt_deg" (70)
+ *   "pose_candidates" (6), "lock_settings" (true), "max_tilt_deg" (70),
+ *   "fixed" ([]: names among fx fy cx cy k1 k2 p1 p2 k3 held at their initial value,
+ *   0 for distortion, e.g. ["k2", "k3"] for a narrow lens; they count as converged)
  * An unknown key is POSECAL_E_INVALID_ARGUMENT. Opening a camera may block up to ~3 s. The
  * camera starts streaming at the first posecal_session_step. */
 POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char* camera_uri,

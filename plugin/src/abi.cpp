@@ -115,19 +115,7 @@ POSECAL_API posecal_status posecal_calibrate_images(posecal_context* ctx, const 
     o.calibration.fix_principal_point = abi::get_bool(opts, "fix_principal_point", false, what);
     o.calibration.fix_aspect_ratio = abi::get_bool(opts, "fix_aspect_ratio", false, what);
     o.calibration.zero_tangential = abi::get_bool(opts, "zero_tangential", false, what);
-    if (opts.contains("fixed")) {
-      const auto& f = opts.at("fixed");
-      if (!f.is_array())
-        throw Error(ErrorCode::kInvalidArgument,
-                    "calibration options: 'fixed' must be an array of names");
-      for (const auto& name : f) {
-        if (!name.is_string()) {
-          throw Error(ErrorCode::kInvalidArgument,
-                      "calibration options: 'fixed' must be an array of names");
-        }
-        o.calibration.fixed.push_back(name.get<std::string>());
-      }
-    }
+    o.calibration.fixed = abi::get_strings(opts, "fixed", what);
     o.min_corners = abi::get_int(opts, "min_corners", 6, 4, 100000, what);
     std::string why;
     if (!o.calibration.is_valid(&why))

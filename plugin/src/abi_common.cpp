@@ -129,6 +129,18 @@ std::string get_string(const nlohmann::json& j, const char* key, const std::stri
   return v.get<std::string>();
 }
 
+std::vector<std::string> get_strings(const nlohmann::json& j, const char* key, const char* what) {
+  std::vector<std::string> out;
+  if (!j.contains(key)) return out;
+  const auto& v = j.at(key);
+  if (!v.is_array()) bad_option(what, key, "an array of strings");
+  for (const auto& e : v) {
+    if (!e.is_string()) bad_option(what, key, "an array of strings");
+    out.push_back(e.get<std::string>());
+  }
+  return out;
+}
+
 std::string to_text(const nlohmann::json& j) {
   return j.dump(-1, ' ', false, nlohmann::json::error_handler_t::replace);
 }

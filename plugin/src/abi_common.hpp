@@ -73,6 +73,8 @@ double get_double(const nlohmann::json& j, const char* key, double def, double l
                   const char* what);
 std::string get_string(const nlohmann::json& j, const char* key, const std::string& def,
                        const char* what);
+// An array of strings (absent: empty).
+std::vector<std::string> get_strings(const nlohmann::json& j, const char* key, const char* what);
 
 // Compact JSON text; invalid UTF-8 (a device name, a path) is replaced by U+FFFD rather than
 // failing the call.

@@ -382,6 +382,10 @@ static void test_session_arguments(posecal_context* ctx) {
   EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"convergence_threshold\":2}", &s));
   EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"lock_settings\":\"yes\"}", &s));
   EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"operator\":\"cat\"}", &s));
+  EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"fixed\":\"k3\"}", &s));
+  EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"fixed\":[3]}", &s));
+  EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"fixed\":[\"k9\"]}", &s));
+  EXPECT_MESSAGE("k9");
   EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"target\":\"charuco:1x1\"}", &s));
   EXPECT_INVALID(
       posecal_session_open(ctx, "sim://?operator=robot", "{\"operator\":\"person\"}", &s));

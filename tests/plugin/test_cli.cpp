@@ -195,6 +195,26 @@ TEST(Cli, SimulateExitCodes) {
   EXPECT_EQ(run("simulate --camera-model /nonexistent.yml").status, 2);
 }
 
+// --fix holds parameters at their initial value (distortion: 0) through the whole session: they
+// report std 0 and count as converged; a wrong name is refused before anything runs.
+TEST(Cli, SimulateWithFixedParameters) {
+  CliRun r = run("simulate --seed 3 --fix k2,k3 --json", true);
+  ASSERT_EQ(r.status, 0) << r.out;
+  const auto j = nlohmann::json::parse(r.out);
+  EXPECT_TRUE(j["converged"].get<bool>());
+  EXPECT_EQ(j["k2"].get<double>(), 0.0);
+  EXPECT_EQ(j["k3"].get<double>(), 0.0);
+  EXPECT_EQ(j["std"]["k3"].get<double>(), 0.0);
+  EXPECT_GT(j["std"]["k1"].get<double>(), 0.0);
+  EXPECT_NE(j["k1"].get<double>(), 0.0);
+  r = run("simulate --fix k9");
+  EXPECT_EQ(r.status, 2);
+  EXPECT_NE(r.out.find("'k9'"), std::string::npos) << r.out;
+  r = run("simulate --fix k2,,k3");
+  EXPECT_EQ(r.status, 1);
+  EXPECT_NE(r.out.find("empty parameter name"), std::string::npos) << r.out;
+}
+
 // posecal station over four simulated cameras: all converge, one result file per camera named
 // by its identity, and a summary.
 TEST(Cli, StationOfFourSimulatedCamerasConverges) {
