@@ -34,9 +34,6 @@ struct posecal_session {
   posecal_event_fn fn = nullptr;
   void* user_data = nullptr;
   std::string started, finished;
-  // The last frame, owned here: a camera's zero-copy frame goes back to its stream when step()
-  // returns, and a host's fed image belongs to the host.
-  cv::Mat last_frame;
   // sim:// only: the fixed test set, rendered once, and the evaluation of the last result.
   std::vector<Observation> test_set;
   int evaluated_keyframes = -1;
@@ -349,7 +346,6 @@ POSECAL_API posecal_status posecal_session_step(posecal_session* session, int ti
     note_finished(session);
     switch (st) {
       case StepStatus::kFrame:
-        session->session->last_frame().copyTo(session->last_frame);
         return POSECAL_OK;
       case StepStatus::kTimeout:
         throw Error(ErrorCode::kTimeout, "no frame from '" + session->camera.uri + "' within " +
@@ -375,14 +371,15 @@ POSECAL_API posecal_status posecal_session_feed(posecal_session* session,
     const cv::Mat m = wrap_image(image);
     if (session->session->finished())
       throw Error(ErrorCode::kState, "the calibration has finished");
-    cv::Mat frame;  // the library's own copy: the host's pixels are not kept beyond the call
+    // CalibrationSession::feed keeps its own copy (for last_frame): the host's pixels are not
+    // referenced beyond this call.
     if (image->format == POSECAL_PIXEL_RGB8) {
-      cv::cvtColor(m, frame, cv::COLOR_RGB2BGR);
+      cv::Mat bgr;
+      cv::cvtColor(m, bgr, cv::COLOR_RGB2BGR);
+      session->session->feed(bgr);
     } else {
-      m.copyTo(frame);
+      session->session->feed(m);
     }
-    session->session->feed(frame);
-    session->last_frame = frame;
     note_finished(session);
     return POSECAL_OK;
   });
@@ -446,15 +443,17 @@ POSECAL_API posecal_status posecal_session_last_frame(posecal_session* session,
     require(session, "session");
     check_not_in_callback(session, "posecal_session_last_frame");
     cv::Mat dst = wrap_image(out);
-    if (session->last_frame.empty()) throw Error(ErrorCode::kState, "no frame processed yet");
-    if (dst.size() != session->last_frame.size()) {
+    // The core session keeps the last frame (a copy, or a camera buffer it holds alive).
+    const cv::Mat& last = session->session->last_frame();
+    if (last.empty()) throw Error(ErrorCode::kState, "no frame processed yet");
+    if (dst.size() != last.size()) {
       throw Error(ErrorCode::kInvalidArgument,
                   "image: " + std::to_string(dst.cols) + "x" + std::to_string(dst.rows) +
-                      " given, the frame is " + std::to_string(session->last_frame.cols) + "x" +
-                      std::to_string(session->last_frame.rows));
+                      " given, the frame is " + std::to_string(last.cols) + "x" +
+                      std::to_string(last.rows));
     }
     cv::Mat converted;
-    convert_into(session->last_frame, converted, out->format);
+    convert_into(last, converted, out->format);
     converted.copyTo(dst);  // dst wraps the host's buffer: copyTo keeps its stride
     return POSECAL_OK;
   });

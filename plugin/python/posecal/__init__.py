@@ -190,16 +190,15 @@ Event.__doc__ = """A session event: `kind` ("captured", "state_changed", ...) an
 JSON payload as a dict (keys "keyframes", "frames", "message", ...)."""
 
 
-class Calibration:
-    """The result of Context.calibrate_images(): `.result` (dict) and `.save(path)`."""
+class _Handle:
+    """An owned library handle: close() frees it (also at collection and on leaving a `with`);
+    calls on a closed object raise StateError."""
 
-    def __init__(self, handle):
-        self._h = handle
+    _what = "object"
+    _h = None
 
     def close(self):
-        if self._h:
-            _lib.posecal_calibration_destroy(self._h)
-            self._h = None
+        raise NotImplementedError
 
     def __del__(self):
         try:
@@ -213,10 +212,30 @@ class Calibration:
     def __exit__(self, *exc):
         self.close()
 
+    @property
+    def closed(self):
+        return not self._h
+
     def _handle(self):
         if not self._h:
-            raise StateError(_errors.E_STATE, "the calibration is closed")
+            raise StateError(_errors.E_STATE, "the %s is closed" % self._what)
         return self._h
+
+
+class Calibration(_Handle):
+    """The result of Context.calibrate_images(): `.result` (dict) and `.save(path)`."""
+
+    _what = "calibration"
+
+    def __init__(self, handle):
+        self._h = handle
+
+    def close(self):
+        if self._h:
+            _lib.posecal_calibration_destroy(self._h)
+            self._h = None
+
+
 
     @property
     def result(self):
@@ -227,11 +246,13 @@ class Calibration:
         _check(_lib.posecal_calibration_save(self._handle(), _enc(path, "path")))
 
 
-class Context:
+class Context(_Handle):
     """Camera backends shared by sessions (posecal_context). Thread-safe.
 
     backends: None for all, or a list of "sim", "images", "external", "aravis", "v4l2".
     """
+
+    _what = "context"
 
     def __init__(self, backends=None):
         self._h = None
@@ -254,26 +275,8 @@ class Context:
             _lib.posecal_context_destroy(self._h)
             self._h = None
 
-    def __del__(self):
-        try:
-            self.close()
-        except Exception:  # interpreter shutdown: the library may be gone already
-            pass
 
-    def __enter__(self):
-        return self
 
-    def __exit__(self, *exc):
-        self.close()
-
-    @property
-    def closed(self):
-        return not self._h
-
-    def _handle(self):
-        if not self._h:
-            raise StateError(_errors.E_STATE, "the context is closed")
-        return self._h
 
     def cameras(self):
         """Cameras of every enabled backend (list of dicts: uri, backend, id, vendor, ...)."""
@@ -327,11 +330,13 @@ def _queueing_callback(queue):
     return on_event
 
 
-class Session:
+class Session(_Handle):
     """One camera calibrated by the pose-selection engine (posecal_session).
 
     Iterating a session steps it until the calibration finishes, yielding its events.
     """
+
+    _what = "session"
 
     def __init__(self, context, uri, **config):
         self._h = None
@@ -356,26 +361,8 @@ class Session:
             with self._context._sessions_lock:
                 self._context._sessions.discard(self)
 
-    def __del__(self):
-        try:
-            self.close()
-        except Exception:  # interpreter shutdown: the library may be gone already
-            pass
 
-    def __enter__(self):
-        return self
 
-    def __exit__(self, *exc):
-        self.close()
-
-    @property
-    def closed(self):
-        return not self._h
-
-    def _handle(self):
-        if not self._h:
-            raise StateError(_errors.E_STATE, "the session is closed")
-        return self._h
 
     # ---- frames --------------------------------------------------------------------------
     def step(self, timeout_ms=1000):
