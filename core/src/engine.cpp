@@ -55,6 +55,8 @@ bool EngineOptions::is_valid(std::string* error) const {
   if (!(jaccard_threshold > 0 && jaccard_threshold < 1)) return fail("jaccard_threshold must be in (0, 1)");
   if (target_timeout_frames < 0) return fail("target_timeout_frames must be >= 0");
   if (pose_candidates < 1 || pose_candidates > 64) return fail("pose_candidates must be in [1, 64]");
+  if (!measured_convergence && !prospective_convergence)
+    return fail("measured_convergence and prospective_convergence cannot both be off");
   if (bootstrap_min_corners < 0) return fail("bootstrap_min_corners must be >= 0");
   if (!(bootstrap_max_relative_std > 0 && bootstrap_max_relative_std <= 1)) {
     return fail("bootstrap_max_relative_std must be in (0, 1]");
@@ -319,7 +321,7 @@ struct CalibrationEngine::Impl {
 
   // Ratio test (paper §4.1) on the parameters of the targeted parameter's group.
   void update_convergence(const CalibrationResult& prev, const CalibrationResult& now, int tgt) {
-    if (tgt < 0) return;
+    if (tgt < 0 || !opt.measured_convergence) return;
     std::vector<double> v0, v1;
     std::vector<bool> skip = param_converged;
     for (int i = 0; i < estimate.num_params(); ++i) {

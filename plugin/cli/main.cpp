@@ -178,6 +178,7 @@ void print_usage() {
       "pose selection (calibrate --camera, station, simulate): [--threshold R (0.1)]\n"
       "      [--max-keyframes N (20)] [--candidates N (6)] [--target-timeout-frames N]\n"
       "      [--fix P,P,... e.g. k2,k3: held at their initial value, 0 for distortion]\n"
+      "      [--measure variance|std (variance: the paper's ratio test)] [--prospective-only]\n"
       "\n"
       "SPEC: charuco:COLSxROWS:SQUARE_M:MARKER_M:DICT (default "
       "charuco:9x6:0.028:0.0182:DICT_4X4_50)\n"
@@ -247,6 +248,8 @@ Json session_config(const Args& args) {
   if (args.has("target-timeout-frames")) {
     cfg["target_timeout_frames"] = args.integer("target-timeout-frames", 0, 0, 1000000);
   }
+  if (args.has("measure")) cfg["convergence_measure"] = args.get("measure");
+  if (args.flag("prospective-only")) cfg["measured_convergence"] = false;
   if (args.has("fix")) {
     // A comma-separated list; the library names an unknown parameter.
     Json names = Json::array();
@@ -986,21 +989,22 @@ int main(int argc, char** argv) {
     if (cmd == "calibrate") {
       return cmd_calibrate(Args(
           argc, argv, 2,
-          {"json", "fix-principal-point", "fix-aspect-ratio", "zero-tangential", "no-window"},
+          {"json", "fix-principal-point", "fix-aspect-ratio", "zero-tangential", "no-window",
+           "prospective-only"},
           {"images", "target", "out", "camera", "guide", "timeout-ms", "max-seconds", "threshold",
-           "max-keyframes", "candidates", "target-timeout-frames", "reply-timeout-s", "fix"}));
+           "max-keyframes", "candidates", "target-timeout-frames", "reply-timeout-s", "fix", "measure"}));
     }
     if (cmd == "simulate") {
       return cmd_simulate(
-          Args(argc, argv, 2, {"json", "events"},
+          Args(argc, argv, 2, {"json", "events", "prospective-only"},
                {"camera-model", "seed", "operator", "noise", "blur", "out", "target", "threshold",
-                "max-keyframes", "max-frames", "candidates", "target-timeout-frames", "fix"}));
+                "max-keyframes", "max-frames", "candidates", "target-timeout-frames", "fix", "measure"}));
     }
     if (cmd == "station") {
       return cmd_station(
-          Args(argc, argv, 2, {"json", "events"},
+          Args(argc, argv, 2, {"json", "events", "prospective-only"},
                {"cameras", "out-dir", "target", "format", "max-seconds", "timeout-ms", "threshold",
-                "max-keyframes", "candidates", "target-timeout-frames", "fix"}));
+                "max-keyframes", "candidates", "target-timeout-frames", "fix", "measure"}));
     }
     if (cmd == "evaluate") {
       return cmd_evaluate(

@@ -204,7 +204,11 @@ typedef struct posecal_image {
  *   "still_motion_px" (1.5), "constraint_factor" (5), "target_timeout_frames" (0 = never),
  *   "pose_candidates" (6), "lock_settings" (true), "max_tilt_deg" (70),
  *   "fixed" ([]: names among fx fy cx cy k1 k2 p1 p2 k3 held at their initial value,
- *   0 for distortion, e.g. ["k2", "k3"] for a narrow lens; they count as converged)
+ *   0 for distortion, e.g. ["k2", "k3"] for a narrow lens; they count as converged),
+ *   "convergence_measure" ("variance": the paper's ratio test; "std": the reference
+ *   implementation's, fewer keyframes, less accurate), "measured_convergence" (true; false:
+ *   parameters converge only when the best next pose would not help, more keyframes, more
+ *   accurate; docs/benchmarks.md)
  * An unknown key is POSECAL_E_INVALID_ARGUMENT. Opening a camera may block up to ~3 s. The
  * camera starts streaming at the first posecal_session_step. */
 POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char* camera_uri,

@@ -107,6 +107,17 @@ EngineOptions engine_options(const Json& c, bool* lock_settings) {
   o.pose_candidates = get_int(c, "pose_candidates", o.pose_candidates, 1, 64, kConfig);
   o.posegen.max_tilt_deg = get_double(c, "max_tilt_deg", o.posegen.max_tilt_deg, 1, 89, kConfig);
   *lock_settings = get_bool(c, "lock_settings", true, kConfig);
+  if (c.contains("convergence_measure")) {
+    const std::string m = get_string(c, "convergence_measure", "", kConfig);
+    if (m != "variance" && m != "std") {
+      throw Error(ErrorCode::kInvalidArgument,
+                  "session config: 'convergence_measure' must be \"variance\" or \"std\", got \"" +
+                      m + "\"");
+    }
+    o.convergence_measure = m == "std" ? EngineOptions::ConvergenceMeasure::kStd
+                                       : EngineOptions::ConvergenceMeasure::kVariance;
+  }
+  o.measured_convergence = get_bool(c, "measured_convergence", o.measured_convergence, kConfig);
   // Intrinsics held at their initial value (distortion: 0), e.g. ["k2", "k3"] for a lens whose
   // field of view is too narrow to observe them; the engine treats them as converged.
   o.calibration.fixed = get_strings(c, "fixed", kConfig);
@@ -278,7 +289,8 @@ POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char
         config_json,
         {"target", "operator", "convergence_threshold", "max_keyframes", "jaccard_threshold",
          "still_motion_px", "constraint_factor", "target_timeout_frames", "pose_candidates",
-         "lock_settings", "max_tilt_deg", "fixed"},
+         "lock_settings", "max_tilt_deg", "fixed", "convergence_measure",
+         "measured_convergence"},
         kConfig);
     bool lock = true;
     EngineOptions eo = engine_options(c, &lock);

@@ -386,6 +386,9 @@ static void test_session_arguments(posecal_context* ctx) {
   EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"fixed\":[3]}", &s));
   EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"fixed\":[\"k9\"]}", &s));
   EXPECT_MESSAGE("k9");
+  EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"convergence_measure\":\"cat\"}", &s));
+  EXPECT_MESSAGE("convergence_measure");
+  EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"measured_convergence\":\"no\"}", &s));
   EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"target\":\"charuco:1x1\"}", &s));
   EXPECT_INVALID(
       posecal_session_open(ctx, "sim://?operator=robot", "{\"operator\":\"person\"}", &s));

@@ -213,6 +213,9 @@ TEST(Cli, SimulateWithFixedParameters) {
   r = run("simulate --fix k2,,k3");
   EXPECT_EQ(r.status, 1);
   EXPECT_NE(r.out.find("empty parameter name"), std::string::npos) << r.out;
+  r = run("simulate --measure cat");
+  EXPECT_EQ(r.status, 2);
+  EXPECT_NE(r.out.find("convergence_measure"), std::string::npos) << r.out;
 }
 
 // posecal station over four simulated cameras: all converge, one result file per camera named

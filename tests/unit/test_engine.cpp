@@ -276,6 +276,11 @@ TEST(Engine, OptionsValidate) {
   o = {};
   o.pose_candidates = 0;
   EXPECT_FALSE(o.is_valid(&why));
+  o = {};
+  o.measured_convergence = false;
+  EXPECT_TRUE(o.is_valid(&why)) << why;
+  o.prospective_convergence = false;  // nothing could ever converge
+  EXPECT_FALSE(o.is_valid(&why));
   EXPECT_THROW(CalibrationEngine(cv::Size(1280, 720), o), Error);
   EXPECT_THROW(CalibrationEngine(cv::Size(8, 8), EngineOptions{}), Error);
 }
@@ -298,6 +303,28 @@ TEST(Engine, OverlayDrawsTheTarget) {
   cv::Mat grey(720, 1280, CV_8U, cv::Scalar(0));
   e.draw_overlay(grey);
   EXPECT_GT(cv::countNonZero(grey), 1000);
+}
+
+// measured_convergence = false: no parameter converges on what the captured keyframe did, only
+// on what the best next pose would do, and the session still converges.
+TEST(Engine, ProspectiveOnlyConvergence) {
+  const Uri uri = Uri::parse("sim://?seed=11&operator=robot");
+  SimCameraOptions so = sim_options_from_uri(uri, TargetSpec{});
+  EngineOptions eo;
+  eo.robot = true;
+  eo.target_timeout_frames = 36;
+  eo.measured_convergence = false;
+  CalibrationSession s(make_sim_camera(so), eo);
+  int prospective = 0, measured = 0;
+  s.set_event_callback([&](const SessionEvent& e) {
+    if (!e.engine || e.engine->kind != EngineEvent::Kind::kParameterConverged) return;
+    if (e.engine->message.find("converged without capturing it") != std::string::npos) ++prospective;
+    if (e.engine->message.find("by the last keyframe") != std::string::npos) ++measured;
+  });
+  for (int f = 0; f < 1500 && !s.finished(); ++f) s.step(1000);
+  EXPECT_TRUE(s.engine().converged()) << s.engine().failure_reason();
+  EXPECT_EQ(measured, 0);
+  EXPECT_EQ(prospective, 9);
 }
 
 TEST(Engine, PersonAndRobotSessionsConverge) {

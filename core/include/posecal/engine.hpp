@@ -65,6 +65,10 @@ struct EngineOptions {
   // rules generate for it would reduce its variance by less than the threshold, the parameter
   // converges without that keyframe (docs/pose-selection.md).
   bool prospective_convergence = true;
+  // The paper's ratio test on the keyframe just captured. Off: parameters converge only
+  // prospectively (needs prospective_convergence), i.e. by what the best pose the rules can
+  // generate would add, not by what an imperfectly reached pose did add.
+  bool measured_convergence = true;
   PoseGenOptions posegen;
   CalibrationOptions calibration;
   DetectorOptions detector;
