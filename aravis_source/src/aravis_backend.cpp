@@ -27,6 +27,7 @@ bool AravisBackendOptions::is_valid(std::string* error) const {
     return fail("packet_timeout_us must be 1000..10000000");
   if (!in(frame_retention_us, 1000, 10000000))
     return fail("frame_retention_us must be 1000..10000000");
+  if (!in(startup_discard_ms, 0, 10000)) return fail("startup_discard_ms must be 0..10000");
   if (!in(extra_buffers, 1, 64)) return fail("extra_buffers must be 1..64");
   if (!in(max_lent_buffers, 0, 64)) return fail("max_lent_buffers must be 0..64");
   if (!in(frame_timeout_ms, 50, 60000)) return fail("frame_timeout_ms must be 50..60000");
@@ -88,6 +89,8 @@ AravisBackendOptions options_for(AravisBackendOptions o, const Uri& uri) {
       as_int(&o.frame_retention_us);
     } else if (key == "packet_socket") {
       as_bool(&o.packet_socket);
+    } else if (key == "startup_discard_ms") {
+      as_int(&o.startup_discard_ms);
     } else if (key == "extra_buffers") {
       as_int(&o.extra_buffers);
     } else if (key == "max_lent_buffers") {
@@ -112,7 +115,8 @@ AravisBackendOptions options_for(AravisBackendOptions o, const Uri& uri) {
       throw Error(ErrorCode::kInvalidArgument,
                   where + ": unknown option '" + key +
                       "' (known: packet_size, packet_resend, socket_buffer_size, "
-                      "packet_timeout_us, frame_retention_us, packet_socket, extra_buffers, "
+                      "packet_timeout_us, frame_retention_us, packet_socket, startup_discard_ms, "
+                      "extra_buffers, "
                       "max_lent_buffers, "
                       "zero_copy, frame_timeout_ms, idle_probe_interval_ms, probe_timeout_ms, "
                       "probe_retries, auto_reconnect, reconnect_min_backoff_ms, "

@@ -630,6 +630,7 @@ void AravisCameraImpl::start_locked() {
   arv_camera_set_acquisition_mode(cam, ARV_ACQUISITION_MODE_CONTINUOUS, err.out());
   if (err) fail("setting AcquisitionMode to Continuous");
   last_buffer_ns_ = now_ns();
+  discard_until_ns_ = now_ns() + int64_t{options_.startup_discard_ms} * 1000000;
   arv_camera_start_acquisition(cam, err.out());
   if (err) {
     pool->retire();
@@ -675,6 +676,12 @@ void AravisCameraImpl::pump(std::shared_ptr<BufferPool> pool, ArvStream* stream)
     ArvBuffer* buffer = arv_stream_timeout_pop_buffer(stream, kPumpPopTimeoutUs);
     if (buffer == nullptr) continue;
     last_buffer_ns_ = now_ns();
+    if (last_buffer_ns_.load() < discard_until_ns_) {
+      // Complete or not, possibly assembled with other cameras' packets (startup_discard_ms).
+      ++dropped_;
+      pool->give_back(buffer);
+      continue;
+    }
     size_t size = 0;
     if (arv_buffer_get_status(buffer) != ARV_BUFFER_STATUS_SUCCESS ||
         arv_buffer_get_image_data(buffer, &size) == nullptr) {

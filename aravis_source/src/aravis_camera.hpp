@@ -143,6 +143,7 @@ class AravisCameraImpl final : public AravisCamera {
   std::atomic<uint64_t> delivered_{0}, dropped_{0}, incomplete_{0}, disconnects_{0}, reconnects_{0},
       zero_copy_{0}, copied_{0};
   std::atomic<int64_t> last_buffer_ns_{0};
+  int64_t discard_until_ns_ = 0;  // frames before this (steady clock) are discarded (pump only)
 
   std::mutex callback_mutex_;
   CameraEventCallback callback_;

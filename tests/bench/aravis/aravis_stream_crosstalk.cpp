@@ -106,7 +106,7 @@ int main(int argc, char** argv) {
                  "[--fps F] [--busy-threads 2] [--udp-socket 0|1]\n");
     return 2;
   }
-  const int status = posecal::bench::enter_private_network(argc, argv, args.cameras);
+  const int status = posecal::testing::enter_private_network(argc, argv, args.cameras);
   if (status >= 0) return status;
 
   std::printf(

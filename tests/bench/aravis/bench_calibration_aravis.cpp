@@ -428,7 +428,7 @@ int main(int argc, char** argv) {
     usage();
     return 2;
   }
-  const int status = posecal::bench::enter_private_network(
+  const int status = posecal::testing::enter_private_network(
       argc, argv, args.only > 0 ? args.only : args.max_cameras);
   if (status >= 0) return status;
   cv::setNumThreads(args.opencv_threads);
