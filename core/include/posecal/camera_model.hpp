@@ -143,7 +143,7 @@ void write_camera_model(const std::string& path, const CameraModel& model,
                         const CalibrationFileExtras& extras = {});
 
 // The Logitech C525 calibration of the paper's experiments (1280x720), built in so the
-// project never reads ../shared at run time.
+// project reads no file outside its own tree at run time (data/c525_reference.yml is the same).
 CameraModel c525_reference_model();
 
 }  // namespace posecal
