@@ -126,6 +126,15 @@ EngineOptions engine_options(const Json& c, bool* lock_settings) {
   return o;
 }
 
+// A host image must have `size` (named `whose` in the error).
+void require_size(const cv::Mat& image, cv::Size size, const char* whose) {
+  if (image.size() == size) return;
+  throw Error(ErrorCode::kInvalidArgument,
+              "image: " + std::to_string(image.cols) + "x" + std::to_string(image.rows) +
+                  " given, " + whose + " is " + std::to_string(size.width) + "x" +
+                  std::to_string(size.height));
+}
+
 int channels_of(int32_t format) {
   switch (format) {
     case POSECAL_PIXEL_MONO8:
@@ -458,12 +467,7 @@ POSECAL_API posecal_status posecal_session_last_frame(posecal_session* session,
     // The core session keeps the last frame (a copy, or a camera buffer it holds alive).
     const cv::Mat& last = session->session->last_frame();
     if (last.empty()) throw Error(ErrorCode::kState, "no frame processed yet");
-    if (dst.size() != last.size()) {
-      throw Error(ErrorCode::kInvalidArgument,
-                  "image: " + std::to_string(dst.cols) + "x" + std::to_string(dst.rows) +
-                      " given, the frame is " + std::to_string(last.cols) + "x" +
-                      std::to_string(last.rows));
-    }
+    require_size(dst, last.size(), "the frame");
     cv::Mat converted;
     convert_into(last, converted, out->format);
     converted.copyTo(dst);  // dst wraps the host's buffer: copyTo keeps its stride
@@ -478,12 +482,7 @@ POSECAL_API posecal_status posecal_session_render_overlay(posecal_session* sessi
     check_not_in_callback(session, "posecal_session_render_overlay");
     cv::Mat m = wrap_image(inout);
     const CalibrationEngine& eng = session->session->engine();
-    if (m.cols != eng.estimate().width() || m.rows != eng.estimate().height()) {
-      throw Error(ErrorCode::kInvalidArgument,
-                  "image: " + std::to_string(m.cols) + "x" + std::to_string(m.rows) +
-                      " given, the camera's is " + std::to_string(eng.estimate().width()) + "x" +
-                      std::to_string(eng.estimate().height()));
-    }
+    require_size(m, eng.estimate().size(), "the camera's");
     if (inout->format == POSECAL_PIXEL_RGB8) {
       cv::Mat bgr;
       cv::cvtColor(m, bgr, cv::COLOR_RGB2BGR);
