@@ -552,4 +552,31 @@ Eigen::MatrixXd intrinsics_information(const CalibrationResult& result) {
   return C.ldlt().solve(Eigen::MatrixXd::Identity(m, m));
 }
 
+Eigen::MatrixXd projection_gram(const CameraModel& model, const std::vector<bool>& fixed, int cols, int rows) {
+  const int n = model.num_params();
+  if (static_cast<int>(fixed.size()) != n) throw Error(ErrorCode::kInvalidArgument, "projection_gram: fixed size");
+  if (cols < 1 || rows < 1) throw Error(ErrorCode::kInvalidArgument, "projection_gram: grid must be >= 1x1");
+  std::vector<int> free_idx;
+  for (int i = 0; i < n; ++i)
+    if (!fixed[i]) free_idx.push_back(i);
+  const int m = static_cast<int>(free_idx.size());
+  Eigen::MatrixXd G = Eigen::MatrixXd::Zero(m, m);
+  Eigen::MatrixXd Jf(2, m);
+  int count = 0;
+  for (int j = 0; j < rows; ++j) {
+    for (int i = 0; i < cols; ++i) {
+      const Eigen::Vector2d p((i + 0.5) * model.width() / cols - 0.5, (j + 0.5) * model.height() / rows - 0.5);
+      Eigen::Vector2d xn, uv;
+      Eigen::Matrix<double, 2, Eigen::Dynamic> J;
+      if (!model.unproject(p, &xn)) continue;
+      if (!model.project(Eigen::Vector3d(xn.x(), xn.y(), 1.0), &uv, nullptr, &J)) continue;
+      for (int k = 0; k < m; ++k) Jf.col(k) = J.col(free_idx[k]);
+      G.noalias() += Jf.transpose() * Jf;
+      ++count;
+    }
+  }
+  if (count > 0) G /= count;
+  return G;
+}
+
 }  // namespace posecal

@@ -117,6 +117,7 @@ struct CalibrationEngine::Impl {
   std::vector<int> keyframe_target;  // parameter each keyframe was captured for (-1: init)
   std::optional<CalibrationResult> result;
   Eigen::MatrixXd information;       // marginal information of the free intrinsics (scoring)
+  Eigen::MatrixXd gram;              // projection_gram() of the estimate (projection scoring)
   std::vector<bool> param_converged;
   std::vector<int> param_targeted;
   int group_keyframes[2] = {0, 0};   // refinement keyframes captured per parameter group
@@ -275,12 +276,15 @@ struct CalibrationEngine::Impl {
       std::vector<TargetPose> cands = posegen.candidates(best, estimate, opt.pose_candidates);
       if (cands.empty()) throw Error(ErrorCode::kInternal, "pose generation produced no candidate");
       size_t pick = 0;
-      double pick_var = std::numeric_limits<double>::infinity();
+      double pick_var = std::numeric_limits<double>::infinity();  // best predicted variance of `best`
       if (opt.pose_candidates > 1 || opt.prospective_convergence) {
-        information = intrinsics_information(*result);
+        prepare_scoring();
+        double pick_score = std::numeric_limits<double>::infinity();
         for (size_t i = 0; i < cands.size(); ++i) {
           const double v = predicted_variance(best, cands[i]);
-          if (v < pick_var) pick_var = v, pick = i;
+          pick_var = std::min(pick_var, v);
+          const double sc = opt.candidate_score == EngineOptions::CandidateScore::kProjection ? predicted_projection(cands[i]) : v;
+          if (sc < pick_score) pick_score = sc, pick = i;
         }
       }
       if (opt.prospective_convergence) {
@@ -311,10 +315,27 @@ struct CalibrationEngine::Impl {
     return cov(it - free_idx.begin(), it - free_idx.begin());
   }
 
+  // Expected squared projection error over the image after capturing `t` (Sigma_p = I):
+  // trace(G Sigma'), the expected eps_gt^2 up to the noise variance (docs/pose-selection.md).
+  double predicted_projection(const TargetPose& t) const {
+    const Eigen::MatrixXd info = information + frame_information(estimate, t.T_cam_board, board.corners(), result->fixed);
+    const Eigen::MatrixXd cov = info.ldlt().solve(Eigen::MatrixXd::Identity(info.rows(), info.cols()));
+    return (gram * cov).trace();
+  }
+
+  void prepare_scoring() {
+    information = intrinsics_information(*result);
+    if (opt.candidate_score == EngineOptions::CandidateScore::kProjection) gram = projection_gram(estimate, result->fixed);
+  }
+
   // A new target for the same parameter (skipped or timed-out target).
   TargetPose next_pose(int param) {
     if (opt.pose_candidates <= 1 || !result) return posegen.next_pose(param, estimate);
-    information = intrinsics_information(*result);
+    prepare_scoring();
+    if (opt.candidate_score == EngineOptions::CandidateScore::kProjection) {
+      return posegen.next_pose(param, estimate, [&](const TargetPose& t) { return predicted_projection(t); },
+                               opt.pose_candidates);
+    }
     return posegen.next_pose(param, estimate, [&](const TargetPose& t) { return predicted_variance(param, t); },
                              opt.pose_candidates);
   }

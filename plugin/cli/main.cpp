@@ -179,6 +179,8 @@ void print_usage() {
       "      [--max-keyframes N (20)] [--candidates N (6)] [--target-timeout-frames N]\n"
       "      [--fix P,P,... e.g. k2,k3: held at their initial value, 0 for distortion]\n"
       "      [--measure variance|std (variance: the paper's ratio test)] [--prospective-only]\n"
+      "      [--score projection|variance (how candidate poses are compared; projection: the\n"
+      "       expected projection error over the image)]\n"
       "\n"
       "SPEC: charuco:COLSxROWS:SQUARE_M:MARKER_M:DICT (default "
       "charuco:9x6:0.028:0.0182:DICT_4X4_50)\n"
@@ -250,6 +252,7 @@ Json session_config(const Args& args) {
   }
   if (args.has("measure")) cfg["convergence_measure"] = args.get("measure");
   if (args.flag("prospective-only")) cfg["measured_convergence"] = false;
+  if (args.has("score")) cfg["candidate_score"] = args.get("score");
   if (args.has("fix")) {
     // A comma-separated list; the library names an unknown parameter.
     Json names = Json::array();
@@ -992,19 +995,20 @@ int main(int argc, char** argv) {
           {"json", "fix-principal-point", "fix-aspect-ratio", "zero-tangential", "no-window",
            "prospective-only"},
           {"images", "target", "out", "camera", "guide", "timeout-ms", "max-seconds", "threshold",
-           "max-keyframes", "candidates", "target-timeout-frames", "reply-timeout-s", "fix", "measure"}));
+           "max-keyframes", "candidates", "target-timeout-frames", "reply-timeout-s", "fix", "measure", "score"}));
     }
     if (cmd == "simulate") {
       return cmd_simulate(
           Args(argc, argv, 2, {"json", "events", "prospective-only"},
                {"camera-model", "seed", "operator", "noise", "blur", "out", "target", "threshold",
-                "max-keyframes", "max-frames", "candidates", "target-timeout-frames", "fix", "measure"}));
+                "max-keyframes", "max-frames", "candidates", "target-timeout-frames", "fix", "measure",
+                "score"}));
     }
     if (cmd == "station") {
       return cmd_station(
           Args(argc, argv, 2, {"json", "events", "prospective-only"},
                {"cameras", "out-dir", "target", "format", "max-seconds", "timeout-ms", "threshold",
-                "max-keyframes", "candidates", "target-timeout-frames", "fix", "measure"}));
+                "max-keyframes", "candidates", "target-timeout-frames", "fix", "measure", "score"}));
     }
     if (cmd == "evaluate") {
       return cmd_evaluate(

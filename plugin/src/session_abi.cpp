@@ -118,6 +118,16 @@ EngineOptions engine_options(const Json& c, bool* lock_settings) {
                                        : EngineOptions::ConvergenceMeasure::kVariance;
   }
   o.measured_convergence = get_bool(c, "measured_convergence", o.measured_convergence, kConfig);
+  if (c.contains("candidate_score")) {
+    const std::string m = get_string(c, "candidate_score", "", kConfig);
+    if (m != "projection" && m != "variance") {
+      throw Error(ErrorCode::kInvalidArgument,
+                  "session config: 'candidate_score' must be \"projection\" or \"variance\", got \"" +
+                      m + "\"");
+    }
+    o.candidate_score = m == "variance" ? EngineOptions::CandidateScore::kParameterVariance
+                                        : EngineOptions::CandidateScore::kProjection;
+  }
   // Intrinsics held at their initial value (distortion: 0), e.g. ["k2", "k3"] for a lens whose
   // field of view is too narrow to observe them; the engine treats them as converged.
   o.calibration.fixed = get_strings(c, "fixed", kConfig);
@@ -299,7 +309,7 @@ POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char
         {"target", "operator", "convergence_threshold", "max_keyframes", "jaccard_threshold",
          "still_motion_px", "constraint_factor", "target_timeout_frames", "pose_candidates",
          "lock_settings", "max_tilt_deg", "fixed", "convergence_measure",
-         "measured_convergence"},
+         "measured_convergence", "candidate_score"},
         kConfig);
     bool lock = true;
     EngineOptions eo = engine_options(c, &lock);

@@ -1,7 +1,8 @@
 // Pose selection vs random poses, side by side on the same sampled cameras (docs/benchmarks.md).
 //
 //   build/bin/bench_pose_selection [--cameras N] [--camera c525|industrial|tele] [--threads T]
-//       [--config default|default-std|paper|std] [--distortion-tilt DEG] [--csv FILE]
+//       [--config default|default-std|paper|std] [--distortion-tilt DEG] [--score variance|projection]
+//       [--csv FILE]
 //       [--figure3 FILE.png]
 //
 // Per camera (seed i): the camera is sampled around the reference with 10% std per parameter
@@ -70,6 +71,11 @@ struct Run {
   // eps_gt with only the pinhole part (fx fy cx cy) or only the distortion part estimated, the
   // other part set to the truth: which group the remaining error comes from (--csv).
   double eps_gt_pinhole = NAN, eps_gt_distortion = NAN;
+  // eps_gt predicted from the calibration's own covariance (scaled by its residual variance):
+  // sqrt(mean over the 40x23 grid of trace(J Sigma J^T)), J = d projection / d intrinsics. It is
+  // what eps_gt is in expectation over the image noise, without the one random draw each
+  // calibration realises, so methods compare with far less spread (--csv, summary line).
+  double eps_gt_predicted = NAN;
   std::map<std::string, AttemptStats> attempts;
 };
 
@@ -88,10 +94,15 @@ RenderOptions render_options(uint64_t seed) {
 
 // --distortion-tilt DEG: overrides PoseGenOptions::distortion_tilt_deg of any configuration.
 double g_distortion_tilt_deg = -1;
+// --score variance|projection: overrides EngineOptions::candidate_score of any configuration.
+std::string g_score;
 
 // Engine configurations compared in docs/benchmarks.md.
 void apply_config(const std::string& config, EngineOptions* eo) {
   if (g_distortion_tilt_deg >= 0) eo->posegen.distortion_tilt_deg = g_distortion_tilt_deg;
+  if (g_score == "variance") eo->candidate_score = EngineOptions::CandidateScore::kParameterVariance;
+  else if (g_score == "projection") eo->candidate_score = EngineOptions::CandidateScore::kProjection;
+  else if (!g_score.empty()) throw Error(ErrorCode::kInvalidArgument, "unknown --score '" + g_score + "' (variance, projection)");
   if (config == "default") return;
   if (config == "prospective" || config == "prospective-std") {
     // Convergence decided only by the predicted reduction of the best next pose.
@@ -126,6 +137,14 @@ void split_eps_gt(const CameraModel& truth, const CameraModel& estimate, Run* r)
   r->eps_gt_distortion = ground_truth_error(truth, d_only, 40, 23);
 }
 
+double predicted_eps_gt(const CalibrationResult& res) {
+  std::vector<int> free_idx;
+  for (size_t i = 0; i < res.fixed.size(); ++i)
+    if (!res.fixed[i]) free_idx.push_back(static_cast<int>(i));
+  const Eigen::MatrixXd cov = res.covariance_scaled()(free_idx, free_idx);
+  return std::sqrt((projection_gram(res.model, res.fixed, 40, 23) * cov).trace());
+}
+
 Run closed_loop(const CameraModel& truth, const TargetSpec& target, uint64_t seed, OperatorKind kind,
                 const std::string& config, const std::vector<Observation>& test) {
   SimCameraOptions so;
@@ -153,6 +172,7 @@ Run closed_loop(const CameraModel& truth, const TargetSpec& target, uint64_t see
     r.eps_test = ev.eps_test;
     r.eps_gt = ev.eps_gt;
     split_eps_gt(truth, eng.estimate(), &r);
+    r.eps_gt_predicted = predicted_eps_gt(*eng.result());
   }
   r.attempts = sim->op().attempts();
   return r;
@@ -166,9 +186,11 @@ Run random_baseline(const CameraModel& truth, const TargetSpec& target, uint64_t
   vs.max_tilt_deg = 45;
   std::vector<std::vector<cv::Point3f>> obj;
   std::vector<std::vector<cv::Point2f>> img;
+  std::vector<Observation> frames;
   for (const Pose& p : random_board_views(seed * 7919 + n, n, truth, board, vs)) {
     const Detection d = board.detect(sc.render(p));
     if (d.size() < 6) continue;
+    frames.push_back(Observation::from(d));
     obj.emplace_back(d.board_points.begin(), d.board_points.end());
     img.emplace_back(d.image_points.begin(), d.image_points.end());
   }
@@ -186,6 +208,9 @@ Run random_baseline(const CameraModel& truth, const TargetSpec& target, uint64_t
     r.eps_test = ev.eps_test;
     r.eps_gt = ev.eps_gt;
     split_eps_gt(truth, m, &r);
+    // Covariance of the same frames through posecal's calibration (equal to OpenCV's solution,
+    // tests/core: Calibration.NoWorseThanOpenCVOnTheSameFrames).
+    r.eps_gt_predicted = predicted_eps_gt(calibrate(frames, truth.size()));
   } catch (const std::exception&) {
     r.converged = false;
   }
@@ -345,6 +370,7 @@ int main(int argc, char** argv) {
     else if (a == "--threads") o.threads = std::stoi(next());
     else if (a == "--config") o.config = next();
     else if (a == "--distortion-tilt") g_distortion_tilt_deg = std::stod(next());
+    else if (a == "--score") g_score = next();
     else if (a == "--csv") o.csv = next();
     else if (a == "--figure3") o.figure3 = next();
     else if (a == "--figure3-cameras") o.figure3_cameras = std::stoi(next());
@@ -409,6 +435,16 @@ int main(int argc, char** argv) {
                 fmt(stats(column([&](const CameraRuns& r) { return (r.*(m.run)).eps_gt / r.base10.eps_gt; })), "%.2f").c_str());
   }
   std::printf("\nmedian [25%%, 75%%] (min-max) over cameras; ratios are per camera.\n\n");
+  std::printf("| method | predicted eps_gt [px] | predicted eps_gt / random-10 |\n|---|---|---|\n");
+  for (const M m : {M{"pose selection, person", &CameraRuns::person}, M{"pose selection, robot", &CameraRuns::robot},
+                    M{"OpenCV, 10 random poses", &CameraRuns::base10}, M{"OpenCV, 20 random poses", &CameraRuns::base20}}) {
+    std::printf("| %s | %s | %s |\n", m.name,
+                fmt(stats(column([&](const CameraRuns& r) { return (r.*(m.run)).eps_gt_predicted; })), "%.3f").c_str(),
+                fmt(stats(column([&](const CameraRuns& r) {
+                      return (r.*(m.run)).eps_gt_predicted / r.base10.eps_gt_predicted;
+                    })), "%.2f").c_str());
+  }
+  std::printf("\n");
   // Targets reached per attempt, by target kind.
   for (const M m : {M{"person", &CameraRuns::person}, M{"robot", &CameraRuns::robot}}) {
     std::map<std::string, AttemptStats> total;
@@ -429,13 +465,13 @@ int main(int argc, char** argv) {
       std::fprintf(stderr, "cannot write %s\n", o.csv.c_str());
       return 1;
     }
-    std::fprintf(f, "seed,method,converged,keyframes,frames,eps_test,eps_gt,eps_gt_pinhole,eps_gt_distortion\n");
+    std::fprintf(f, "seed,method,converged,keyframes,frames,eps_test,eps_gt,eps_gt_pinhole,eps_gt_distortion,eps_gt_predicted\n");
     for (const auto& r : runs) {
       for (const M m : {M{"person", &CameraRuns::person}, M{"robot", &CameraRuns::robot}, M{"random10", &CameraRuns::base10},
                         M{"random20", &CameraRuns::base20}}) {
         const Run& x = r.*(m.run);
-        std::fprintf(f, "%d,%s,%d,%d,%d,%.6f,%.6f,%.6f,%.6f\n", r.seed, m.name, x.converged, x.keyframes, x.frames,
-                     x.eps_test, x.eps_gt, x.eps_gt_pinhole, x.eps_gt_distortion);
+        std::fprintf(f, "%d,%s,%d,%d,%d,%.6f,%.6f,%.6f,%.6f,%.6f\n", r.seed, m.name, x.converged, x.keyframes,
+                     x.frames, x.eps_test, x.eps_gt, x.eps_gt_pinhole, x.eps_gt_distortion, x.eps_gt_predicted);
       }
     }
     std::fclose(f);

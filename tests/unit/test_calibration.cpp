@@ -208,3 +208,61 @@ TEST(Metrics, GroundTruthErrorAndTestError) {
   wrong.params()[4] += 0.1;
   EXPECT_GT(test_error(wrong, test).rms_px, te.rms_px * 3);
 }
+
+// trace(G Sigma) is the expected squared projection error over the image: checked exactly for the
+// principal point and the focal length of a pinhole model, and against sampling for a full
+// covariance with distortion.
+TEST(Calibration, ProjectionGramGivesTheExpectedProjectionError) {
+  const CameraModel pin = CameraModel::opencv5(640, 480, 500, 500, 319.5, 239.5, {0, 0, 0, 0, 0});
+  std::vector<bool> only(9, true);
+  only[2] = false;  // cx free: every pixel moves by d(cx)
+  Eigen::MatrixXd G = projection_gram(pin, only, 8, 6);
+  ASSERT_EQ(G.rows(), 1);
+  EXPECT_NEAR(G(0, 0), 1.0, 1e-9);
+  only[2] = true;
+  only[0] = false;  // fx free: pixel x moves by x_n d(fx)
+  G = projection_gram(pin, only, 8, 6);
+  double mean_x2 = 0;
+  for (int i = 0; i < 8; ++i) {
+    const double xn = ((i + 0.5) * 640 / 8 - 0.5 - 319.5) / 500;
+    mean_x2 += xn * xn / 8;
+  }
+  EXPECT_NEAR(G(0, 0), mean_x2, 1e-9);
+
+  // Full model: E|pi(C + dC) - pi(C)|^2 by sampling dC ~ N(0, Sigma), vs trace(G Sigma).
+  const CameraModel m = c525_reference_model();
+  const std::vector<bool> none(9, false);
+  const Eigen::VectorXd sd = (Eigen::VectorXd(9) << 0.5, 0.5, 0.4, 0.4, 1e-3, 3e-3, 5e-5, 5e-5, 3e-3).finished();
+  Eigen::MatrixXd corr = Eigen::MatrixXd::Identity(9, 9);
+  corr(0, 1) = corr(1, 0) = 0.8;
+  corr(4, 5) = corr(5, 4) = -0.6;
+  const Eigen::MatrixXd Sigma = sd.asDiagonal() * corr * sd.asDiagonal();
+  const double predicted = (projection_gram(m, none, 16, 9) * Sigma).trace();
+  const Eigen::MatrixXd L = Sigma.llt().matrixL();
+  cv::RNG rng(5);
+  double sum = 0;
+  const int samples = 2000;
+  for (int s = 0; s < samples; ++s) {
+    Eigen::VectorXd z(9);
+    for (int k = 0; k < 9; ++k) z[k] = rng.gaussian(1.0);
+    const Eigen::VectorXd d = L * z;
+    CameraModel q = m;
+    for (int k = 0; k < 9; ++k) q.params()[k] += d[k];
+    double e = 0;
+    int n = 0;
+    for (int j = 0; j < 9; ++j) {
+      for (int i = 0; i < 16; ++i) {
+        const Eigen::Vector2d p((i + 0.5) * m.width() / 16 - 0.5, (j + 0.5) * m.height() / 9 - 0.5);
+        Eigen::Vector2d xn, uv;
+        ASSERT_TRUE(m.unproject(p, &xn));
+        ASSERT_TRUE(q.project(Eigen::Vector3d(xn.x(), xn.y(), 1), &uv));
+        e += (uv - p).squaredNorm();
+        ++n;
+      }
+    }
+    sum += e / n;
+  }
+  EXPECT_NEAR(sum / samples / predicted, 1.0, 0.08) << "sampled " << sum / samples << " predicted " << predicted;
+  EXPECT_THROW(projection_gram(m, std::vector<bool>(3, false)), Error);
+  EXPECT_THROW(projection_gram(m, none, 0, 9), Error);
+}

@@ -314,6 +314,9 @@ TEST(Engine, ProspectiveOnlyConvergence) {
   eo.robot = true;
   eo.target_timeout_frames = 36;
   eo.measured_convergence = false;
+  // Candidates by the targeted parameter's variance: the pose captured is then the one the
+  // prospective test predicts, so every parameter converges within the cap.
+  eo.candidate_score = EngineOptions::CandidateScore::kParameterVariance;
   CalibrationSession s(make_sim_camera(so), eo);
   int prospective = 0, measured = 0;
   s.set_event_callback([&](const SessionEvent& e) {
@@ -338,5 +341,64 @@ TEST(Engine, PersonAndRobotSessionsConverge) {
     for (int f = 0; f < 1500 && !s.finished(); ++f) s.step(1000);
     EXPECT_TRUE(s.engine().converged()) << op << ": " << s.engine().failure_reason();
     EXPECT_LE(s.engine().keyframes(), 20);
+  }
+}
+
+// The first refinement target is the candidate with the best score: the lowest expected
+// projection error over the image (kProjection) or the lowest predicted variance of the targeted
+// parameter (kParameterVariance), recomputed here from the engine's calibration and a fresh
+// generator (nothing is committed before the first refinement target).
+TEST(Engine, FirstRefinementTargetIsTheBestScoredCandidate) {
+  using Score = EngineOptions::CandidateScore;
+  for (const Score score : {Score::kProjection, Score::kParameterVariance}) {
+    const Uri uri = Uri::parse("sim://?seed=11&operator=robot");
+    SimCameraOptions so = sim_options_from_uri(uri, TargetSpec{});
+    EngineOptions eo;
+    eo.robot = true;
+    eo.target_timeout_frames = 36;
+    eo.candidate_score = score;
+    CalibrationSession s(make_sim_camera(so), eo);
+    std::string param;
+    s.set_event_callback([&](const SessionEvent& e) {
+      if (e.engine && e.engine->kind == EngineEvent::Kind::kTargetChanged && !e.engine->parameter.empty() &&
+          param.empty()) {
+        param = e.engine->parameter;
+      }
+    });
+    for (int f = 0; f < 400 && !s.finished(); ++f) {
+      s.step(1000);
+      if (s.engine().state() == EngineState::kRefining) break;
+    }
+    ASSERT_EQ(s.engine().state(), EngineState::kRefining);
+    ASSERT_TRUE(s.engine().target().has_value());
+    ASSERT_FALSE(param.empty());
+    const CalibrationResult& res = *s.engine().result();
+    const CameraModel& est = s.engine().estimate();
+    ASSERT_EQ(std::count(res.fixed.begin(), res.fixed.end(), true), 0);
+    const auto& names = est.param_names();
+    const int p = static_cast<int>(std::find(names.begin(), names.end(), param) - names.begin());
+    ASSERT_LT(p, est.num_params());
+
+    const Target board(eo.target);
+    PoseGenerator pg(board, est.size(), eo.posegen);
+    const std::vector<TargetPose> cands = pg.candidates(p, est, eo.pose_candidates);
+    ASSERT_GT(cands.size(), 1u);
+    const Eigen::MatrixXd info = intrinsics_information(res);
+    const Eigen::MatrixXd G = projection_gram(est, res.fixed);
+    size_t best = 0;
+    double best_score = 1e300;
+    std::vector<double> scores;
+    for (size_t i = 0; i < cands.size(); ++i) {
+      const Eigen::MatrixXd I = info + frame_information(est, cands[i].T_cam_board, board.corners(), res.fixed);
+      const Eigen::MatrixXd cov = I.inverse();
+      const double sc = score == Score::kProjection ? (G * cov).trace() : cov(p, p);
+      scores.push_back(sc);
+      if (sc < best_score) best_score = sc, best = i;
+    }
+    const Pose& got = s.engine().target()->T_cam_board;
+    EXPECT_LT((got.r - cands[best].T_cam_board.r).norm(), 1e-9) << "candidate " << best << " of " << cands.size();
+    EXPECT_LT((got.t - cands[best].T_cam_board.t).norm(), 1e-9);
+    // The scores differ between candidates: the choice is not the first candidate by default.
+    EXPECT_GT(*std::max_element(scores.begin(), scores.end()), 1.01 * best_score);
   }
 }

@@ -92,6 +92,14 @@ Eigen::MatrixXd frame_information(const CameraModel& model, const Pose& T_cam_bo
 // Marginal information of the free intrinsics from a result: inverse of their covariance block.
 Eigen::MatrixXd intrinsics_information(const CalibrationResult& result);
 
+// Mean of J^T J over a cols x rows grid of pixel centres, J = d(pixel)/d(free intrinsics) of the
+// ray through each pixel (free parameters in the order of `fixed`'s false entries). For a
+// covariance Sigma of the free intrinsics, trace(G Sigma) is the expected squared projection
+// error averaged over the image, i.e. the expected eps_gt^2 (docs/math.md). Grid pixels
+// without a preimage are left out; all zero if none has one.
+Eigen::MatrixXd projection_gram(const CameraModel& model, const std::vector<bool>& fixed, int cols = 16,
+                                int rows = 9);
+
 // Fits the pose of one frame with fixed intrinsics (PnP, then Ceres refinement). Returns false if
 // the frame has fewer than 4 points or the fit fails.
 bool estimate_pose(const CameraModel& model, const Observation& frame, Pose* T_cam_board,

@@ -58,6 +58,11 @@ struct EngineOptions {
   // n > 1 = the best of the first n rule-generated candidates by predicted variance of the
   // targeted parameter (docs/pose-selection.md).
   int pose_candidates = 6;
+  // How the candidates are compared: kProjection = the lowest expected projection error over the
+  // whole image after the pose (trace(G Sigma'), see projection_gram()); kParameterVariance =
+  // the lowest predicted variance of the targeted parameter. The prospective test always uses
+  // the targeted parameter's best predicted variance (docs/pose-selection.md).
+  enum class CandidateScore { kProjection, kParameterVariance } candidate_score = CandidateScore::kProjection;
   // Ratio test measure: kVariance = 1 - sigma'^2 / sigma^2 (paper §4.1); kStd = 1 - sigma' /
   // sigma (the reference implementation; at 10% it equals a 19% variance reduction).
   enum class ConvergenceMeasure { kVariance, kStd } convergence_measure = ConvergenceMeasure::kVariance;
