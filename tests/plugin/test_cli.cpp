@@ -216,6 +216,9 @@ TEST(Cli, SimulateWithFixedParameters) {
   r = run("simulate --measure cat");
   EXPECT_EQ(r.status, 2);
   EXPECT_NE(r.out.find("convergence_measure"), std::string::npos) << r.out;
+  r = run("simulate --score cat");
+  EXPECT_EQ(r.status, 2);
+  EXPECT_NE(r.out.find("candidate_score"), std::string::npos) << r.out;
 }
 
 // posecal station over four simulated cameras: all converge, one result file per camera named
