@@ -280,10 +280,12 @@ struct CalibrationEngine::Impl {
       if (opt.pose_candidates > 1 || opt.prospective_convergence) {
         prepare_scoring();
         double pick_score = std::numeric_limits<double>::infinity();
+        const int k = free_position(best);
         for (size_t i = 0; i < cands.size(); ++i) {
-          const double v = predicted_variance(best, cands[i]);
+          const Eigen::MatrixXd cov = predicted_covariance(cands[i]);
+          const double v = k < 0 ? 0.0 : cov(k, k);
           pick_var = std::min(pick_var, v);
-          const double sc = opt.candidate_score == EngineOptions::CandidateScore::kProjection ? predicted_projection(cands[i]) : v;
+          const double sc = opt.candidate_score == EngineOptions::CandidateScore::kProjection ? (gram * cov).trace() : v;
           if (sc < pick_score) pick_score = sc, pick = i;
         }
       }
@@ -303,25 +305,28 @@ struct CalibrationEngine::Impl {
     }
   }
 
-  // Predicted variance of parameter `param` after capturing `t` (Sigma_p = I).
-  double predicted_variance(int param, const TargetPose& t) const {
-    std::vector<int> free_idx;
-    for (size_t i = 0; i < result->fixed.size(); ++i)
-      if (!result->fixed[i]) free_idx.push_back(static_cast<int>(i));
-    const auto it = std::find(free_idx.begin(), free_idx.end(), param);
-    if (it == free_idx.end()) return 0.0;
+  // Predicted covariance of the free intrinsics after capturing `t` (Sigma_p = I), exact at the
+  // linearisation point (docs/math.md).
+  Eigen::MatrixXd predicted_covariance(const TargetPose& t) const {
     const Eigen::MatrixXd info = information + frame_information(estimate, t.T_cam_board, board.corners(), result->fixed);
-    const Eigen::MatrixXd cov = info.ldlt().solve(Eigen::MatrixXd::Identity(info.rows(), info.cols()));
-    return cov(it - free_idx.begin(), it - free_idx.begin());
+    return info.ldlt().solve(Eigen::MatrixXd::Identity(info.rows(), info.cols()));
   }
 
-  // Expected squared projection error over the image after capturing `t` (Sigma_p = I):
-  // trace(G Sigma'), the expected eps_gt^2 up to the noise variance (docs/pose-selection.md).
-  double predicted_projection(const TargetPose& t) const {
-    const Eigen::MatrixXd info = information + frame_information(estimate, t.T_cam_board, board.corners(), result->fixed);
-    const Eigen::MatrixXd cov = info.ldlt().solve(Eigen::MatrixXd::Identity(info.rows(), info.cols()));
-    return (gram * cov).trace();
+  // Position of `param` among the free intrinsics, -1 if it is fixed.
+  int free_position(int param) const {
+    if (result->fixed[param]) return -1;
+    return static_cast<int>(std::count(result->fixed.begin(), result->fixed.begin() + param, false));
   }
+
+  // Predicted variance of parameter `param` after capturing `t`.
+  double predicted_variance(int param, const TargetPose& t) const {
+    const int k = free_position(param);
+    return k < 0 ? 0.0 : predicted_covariance(t)(k, k);
+  }
+
+  // Expected squared projection error over the image after capturing `t`: trace(G Sigma'), the
+  // expected eps_gt^2 up to the noise variance (docs/pose-selection.md).
+  double predicted_projection(const TargetPose& t) const { return (gram * predicted_covariance(t)).trace(); }
 
   void prepare_scoring() {
     information = intrinsics_information(*result);

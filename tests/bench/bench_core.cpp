@@ -164,6 +164,36 @@ static void BM_TargetPose_Scored6(benchmark::State& state) {
 }
 BENCHMARK(BM_TargetPose_Scored6)->Arg(2)->Arg(4)->Unit(benchmark::kMicrosecond);
 
+// The engine's default since candidate_score = kProjection, step for step: the projection Gram
+// matrix of the estimate (16x9 rays), 6 rule candidates, each with its predicted covariance,
+// the targeted parameter's variance (prospective test) and trace(G Sigma') (the score), then
+// the best one committed.
+static void BM_TargetPose_ProjectionScored6(benchmark::State& state) {
+  Fixture& f = fixture();
+  const int param = static_cast<int>(state.range(0));
+  const Eigen::MatrixXd info = intrinsics_information(f.nine);
+  for (auto _ : state) {
+    state.PauseTiming();
+    PoseGenerator pg(f.target, f.truth.size());
+    state.ResumeTiming();
+    const Eigen::MatrixXd G = projection_gram(f.nine.model, f.nine.fixed);
+    const std::vector<TargetPose> cands = pg.candidates(param, f.nine.model, 6);
+    size_t pick = 0;
+    double best = 1e300, best_var = 1e300;
+    for (size_t i = 0; i < cands.size(); ++i) {
+      const Eigen::MatrixXd I = info + frame_information(f.nine.model, cands[i].T_cam_board, f.target.corners(), f.nine.fixed);
+      const Eigen::MatrixXd cov = I.ldlt().solve(Eigen::MatrixXd::Identity(9, 9));
+      best_var = std::min(best_var, cov(param, param));
+      const double sc = (G * cov).trace();
+      if (sc < best) best = sc, pick = i;
+    }
+    pg.commit(cands[pick]);
+    benchmark::DoNotOptimize(best_var);
+    benchmark::DoNotOptimize(cands[pick].T_cam_board.t.data());
+  }
+}
+BENCHMARK(BM_TargetPose_ProjectionScored6)->Arg(2)->Arg(4)->Unit(benchmark::kMicrosecond);
+
 // One frame of the live loop while refining: detection, stillness, pose (PnP), Jaccard of the
 // target and current board areas, guidance. The board is away from the target, so no keyframe.
 static void BM_EngineFrame_1280x720(benchmark::State& state) {
