@@ -165,7 +165,7 @@ static void BM_TargetPose_Scored6(benchmark::State& state) {
 BENCHMARK(BM_TargetPose_Scored6)->Arg(2)->Arg(4)->Unit(benchmark::kMicrosecond);
 
 // The engine's default since candidate_score = kProjection, step for step: the projection Gram
-// matrix of the estimate (16x9 rays), 6 rule candidates, each with its predicted covariance,
+// matrix of the estimate (8x5 rays, as the engine), 6 rule candidates, each with its predicted covariance,
 // the targeted parameter's variance (prospective test) and trace(G Sigma') (the score), then
 // the best one committed.
 static void BM_TargetPose_ProjectionScored6(benchmark::State& state) {
@@ -176,7 +176,7 @@ static void BM_TargetPose_ProjectionScored6(benchmark::State& state) {
     state.PauseTiming();
     PoseGenerator pg(f.target, f.truth.size());
     state.ResumeTiming();
-    const Eigen::MatrixXd G = projection_gram(f.nine.model, f.nine.fixed);
+    const Eigen::MatrixXd G = projection_gram(f.nine.model, f.nine.fixed, 8, 5);
     const std::vector<TargetPose> cands = pg.candidates(param, f.nine.model, 6);
     size_t pick = 0;
     double best = 1e300, best_var = 1e300;
@@ -193,6 +193,17 @@ static void BM_TargetPose_ProjectionScored6(benchmark::State& state) {
   }
 }
 BENCHMARK(BM_TargetPose_ProjectionScored6)->Arg(2)->Arg(4)->Unit(benchmark::kMicrosecond);
+
+// The projection Gram matrix alone, over the engine's 8x5 rays and the benchmark's 40x23.
+static void BM_ProjectionGram(benchmark::State& state) {
+  Fixture& f = fixture();
+  const int cols = static_cast<int>(state.range(0)), rows = static_cast<int>(state.range(1));
+  for (auto _ : state) {
+    const Eigen::MatrixXd G = projection_gram(f.nine.model, f.nine.fixed, cols, rows);
+    benchmark::DoNotOptimize(G.data());
+  }
+}
+BENCHMARK(BM_ProjectionGram)->Args({8, 5})->Args({40, 23})->Unit(benchmark::kMicrosecond);
 
 // One frame of the live loop while refining: detection, stillness, pose (PnP), Jaccard of the
 // target and current board areas, guidance. The board is away from the target, so no keyframe.

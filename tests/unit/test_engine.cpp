@@ -384,7 +384,7 @@ TEST(Engine, FirstRefinementTargetIsTheBestScoredCandidate) {
     const std::vector<TargetPose> cands = pg.candidates(p, est, eo.pose_candidates);
     ASSERT_GT(cands.size(), 1u);
     const Eigen::MatrixXd info = intrinsics_information(res);
-    const Eigen::MatrixXd G = projection_gram(est, res.fixed);
+    const Eigen::MatrixXd G = projection_gram(est, res.fixed, 8, 5);  // the engine's grid
     size_t best = 0;
     double best_score = 1e300;
     std::vector<double> scores;

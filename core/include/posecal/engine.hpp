@@ -60,8 +60,8 @@ struct EngineOptions {
   int pose_candidates = 6;
   // How the candidates are compared: kProjection = the lowest expected projection error over the
   // whole image after the pose (trace(G Sigma'), see projection_gram()); kParameterVariance =
-  // the lowest predicted variance of the targeted parameter. The prospective test always uses
-  // the targeted parameter's best predicted variance (docs/pose-selection.md).
+  // the lowest predicted variance of the targeted parameter. The prospective test uses the
+  // targeted parameter's predicted variance after the chosen candidate (docs/pose-selection.md).
   enum class CandidateScore { kProjection, kParameterVariance } candidate_score = CandidateScore::kProjection;
   // Ratio test measure: kVariance = 1 - sigma'^2 / sigma^2 (paper §4.1); kStd = 1 - sigma' /
   // sigma (the reference implementation; at 10% it equals a 19% variance reduction).
