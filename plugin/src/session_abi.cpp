@@ -83,6 +83,20 @@ Json event_json(const SessionEvent& e, std::string* kind) {
   return j;
 }
 
+// A string option of the session config naming one of `values`; `def` when absent.
+template <typename T>
+T get_one_of(const Json& c, const char* key, T def, std::initializer_list<std::pair<const char*, T>> values) {
+  if (!c.contains(key)) return def;
+  const std::string v = abi::get_string(c, key, "", kConfig);
+  std::string allowed;
+  for (const auto& [name, value] : values) {
+    if (v == name) return value;
+    allowed += (allowed.empty() ? "\"" : " or \"") + std::string(name) + "\"";
+  }
+  throw Error(ErrorCode::kInvalidArgument,
+              std::string("session config: '") + key + "' must be " + allowed + ", got \"" + v + "\"");
+}
+
 EngineOptions engine_options(const Json& c, bool* lock_settings) {
   using namespace posecal::abi;
   EngineOptions o;
@@ -107,27 +121,13 @@ EngineOptions engine_options(const Json& c, bool* lock_settings) {
   o.pose_candidates = get_int(c, "pose_candidates", o.pose_candidates, 1, 64, kConfig);
   o.posegen.max_tilt_deg = get_double(c, "max_tilt_deg", o.posegen.max_tilt_deg, 1, 89, kConfig);
   *lock_settings = get_bool(c, "lock_settings", true, kConfig);
-  if (c.contains("convergence_measure")) {
-    const std::string m = get_string(c, "convergence_measure", "", kConfig);
-    if (m != "variance" && m != "std") {
-      throw Error(ErrorCode::kInvalidArgument,
-                  "session config: 'convergence_measure' must be \"variance\" or \"std\", got \"" +
-                      m + "\"");
-    }
-    o.convergence_measure = m == "std" ? EngineOptions::ConvergenceMeasure::kStd
-                                       : EngineOptions::ConvergenceMeasure::kVariance;
-  }
+  using Measure = EngineOptions::ConvergenceMeasure;
+  using Score = EngineOptions::CandidateScore;
+  o.convergence_measure = get_one_of<Measure>(c, "convergence_measure", o.convergence_measure,
+                                              {{"variance", Measure::kVariance}, {"std", Measure::kStd}});
   o.measured_convergence = get_bool(c, "measured_convergence", o.measured_convergence, kConfig);
-  if (c.contains("candidate_score")) {
-    const std::string m = get_string(c, "candidate_score", "", kConfig);
-    if (m != "projection" && m != "variance") {
-      throw Error(ErrorCode::kInvalidArgument,
-                  "session config: 'candidate_score' must be \"projection\" or \"variance\", got \"" +
-                      m + "\"");
-    }
-    o.candidate_score = m == "variance" ? EngineOptions::CandidateScore::kParameterVariance
-                                        : EngineOptions::CandidateScore::kProjection;
-  }
+  o.candidate_score = get_one_of<Score>(c, "candidate_score", o.candidate_score,
+                                        {{"projection", Score::kProjection}, {"variance", Score::kParameterVariance}});
   // Intrinsics held at their initial value (distortion: 0), e.g. ["k2", "k3"] for a lens whose
   // field of view is too narrow to observe them; the engine treats them as converged.
   o.calibration.fixed = get_strings(c, "fixed", kConfig);
