@@ -495,50 +495,77 @@ CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size ima
   return res;
 }
 
+namespace {
+
+// frame_information() for models with at most kNParams intrinsics. The pose enters through a
+// left perturbation of the board points in the camera frame, d(p_cam) = [-[R P]x | I] (dw, dt):
+// the Schur complement onto the intrinsics does not depend on how the eliminated pose is
+// parametrised, so this equals the complement for the rotation vector, without differentiating
+// the rotation. Forward-mode derivatives only over p_cam and the intrinsics.
+template <int kNParams>
+Eigen::MatrixXd frame_information_impl(const CameraModel& model, const Pose& T_cam_board,
+                                       const std::vector<cv::Point3d>& board_points,
+                                       const std::vector<bool>& fixed) {
+  using Jet = ceres::Jet<double, 3 + kNParams>;
+  using MatA = Eigen::Matrix<double, kNParams, kNParams>;
+  using MatB = Eigen::Matrix<double, kNParams, 6>;
+  const int n = model.num_params();
+  MatA A = MatA::Zero();
+  MatB B = MatB::Zero();
+  Eigen::Matrix<double, 6, 6> D = Eigen::Matrix<double, 6, 6>::Zero();
+  Jet intr[kNParams];
+  for (int i = 0; i < n; ++i) intr[i] = Jet(model.params()[i], 3 + i);
+  const Eigen::Matrix3d R = T_cam_board.R();
+  Eigen::Matrix<double, 2, kNParams> Ji = Eigen::Matrix<double, 2, kNParams>::Zero();
+  Eigen::Matrix<double, 2, 3> Jc;
+  Eigen::Matrix<double, 3, 6> dpc = Eigen::Matrix<double, 3, 6>::Zero();
+  dpc.template rightCols<3>().setIdentity();
+  for (const auto& P : board_points) {
+    const Eigen::Vector3d RP = R * Eigen::Vector3d(P.x, P.y, P.z);
+    const Eigen::Vector3d pc = RP + T_cam_board.t;
+    if (!(pc.z() > 1e-9)) continue;
+    const Jet jpc[3] = {Jet(pc.x(), 0), Jet(pc.y(), 1), Jet(pc.z(), 2)};
+    Jet uv[2];
+    project_generic(model.lens_model(), intr, jpc, uv);
+    if (!(uv[0].a >= -0.5 && uv[0].a <= model.width() - 0.5 && uv[1].a >= -0.5 && uv[1].a <= model.height() - 0.5)) {
+      continue;  // not observed
+    }
+    for (int r = 0; r < 2; ++r) {
+      for (int k = 0; k < 3; ++k) Jc(r, k) = uv[r].v[k];
+      for (int k = 0; k < n; ++k) Ji(r, k) = uv[r].v[3 + k];
+    }
+    // d(R P)/dw for R <- exp([w]x) R is -[R P]x.
+    dpc(0, 1) = RP.z(), dpc(0, 2) = -RP.y();
+    dpc(1, 0) = -RP.z(), dpc(1, 2) = RP.x();
+    dpc(2, 0) = RP.y(), dpc(2, 1) = -RP.x();
+    const Eigen::Matrix<double, 2, 6> Jp = Jc * dpc;
+    A.noalias() += Ji.transpose() * Ji;
+    B.noalias() += Ji.transpose() * Jp;
+    D.noalias() += Jp.transpose() * Jp;
+  }
+  // Keep the free parameters, in order.
+  std::vector<int> free_idx;
+  for (int i = 0; i < n; ++i)
+    if (!fixed[i]) free_idx.push_back(i);
+  const int m = static_cast<int>(free_idx.size());
+  const Eigen::LDLT<Eigen::Matrix<double, 6, 6>> ldlt(D);
+  if (ldlt.info() != Eigen::Success || !(D.trace() > 0)) return Eigen::MatrixXd::Zero(m, m);
+  const MatA S = A - B * ldlt.solve(B.transpose());
+  Eigen::MatrixXd out(m, m);
+  for (int a = 0; a < m; ++a)
+    for (int b = 0; b < m; ++b) out(a, b) = S(free_idx[a], free_idx[b]);
+  return out;
+}
+
+}  // namespace
+
 Eigen::MatrixXd frame_information(const CameraModel& model, const Pose& T_cam_board,
                                   const std::vector<cv::Point3d>& board_points,
                                   const std::vector<bool>& fixed) {
   const int n = model.num_params();
   if (static_cast<int>(fixed.size()) != n) throw Error(ErrorCode::kInvalidArgument, "frame_information: fixed size");
-  std::vector<int> free_idx;
-  for (int i = 0; i < n; ++i)
-    if (!fixed[i]) free_idx.push_back(i);
-  const int m = static_cast<int>(free_idx.size());
-  constexpr int kN = kMaxIntrinsics + 6;
-  using Jet = ceres::Jet<double, kN>;
-  Eigen::MatrixXd A = Eigen::MatrixXd::Zero(m, m), B = Eigen::MatrixXd::Zero(m, 6);
-  Eigen::Matrix<double, 6, 6> D = Eigen::Matrix<double, 6, 6>::Zero();
-  Jet intr[kMaxIntrinsics], rt[6];
-  for (int i = 0; i < n; ++i) intr[i] = Jet(model.params()[i]);
-  for (int k = 0; k < m; ++k) intr[free_idx[k]].v[k] = 1.0;
-  for (int k = 0; k < 3; ++k) {
-    rt[k] = Jet(T_cam_board.r[k], kMaxIntrinsics + k);
-    rt[3 + k] = Jet(T_cam_board.t[k], kMaxIntrinsics + 3 + k);
-  }
-  Eigen::MatrixXd Ji(2, m);
-  Eigen::Matrix<double, 2, 6> Jp;
-  for (const auto& P : board_points) {
-    const Jet Pb[3] = {Jet(P.x), Jet(P.y), Jet(P.z)};
-    Jet pc[3];
-    ceres::AngleAxisRotatePoint(rt, Pb, pc);
-    for (int k = 0; k < 3; ++k) pc[k] += rt[3 + k];
-    if (!(pc[2].a > 1e-9)) continue;
-    Jet uv[2];
-    project_generic(model.lens_model(), intr, pc, uv);
-    if (!(uv[0].a >= -0.5 && uv[0].a <= model.width() - 0.5 && uv[1].a >= -0.5 && uv[1].a <= model.height() - 0.5)) {
-      continue;  // not observed
-    }
-    for (int r = 0; r < 2; ++r) {
-      for (int k = 0; k < m; ++k) Ji(r, k) = uv[r].v[k];
-      for (int k = 0; k < 6; ++k) Jp(r, k) = uv[r].v[kMaxIntrinsics + k];
-    }
-    A += Ji.transpose() * Ji;
-    B += Ji.transpose() * Jp;
-    D += Jp.transpose() * Jp;
-  }
-  const Eigen::LDLT<Eigen::Matrix<double, 6, 6>> ldlt(D);
-  if (ldlt.info() != Eigen::Success || !(D.trace() > 0)) return Eigen::MatrixXd::Zero(m, m);
-  return A - B * ldlt.solve(B.transpose());
+  if (n <= 9) return frame_information_impl<9>(model, T_cam_board, board_points, fixed);
+  return frame_information_impl<kMaxIntrinsics>(model, T_cam_board, board_points, fixed);
 }
 
 Eigen::MatrixXd intrinsics_information(const CalibrationResult& result) {

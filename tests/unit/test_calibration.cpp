@@ -266,3 +266,57 @@ TEST(Calibration, ProjectionGramGivesTheExpectedProjectionError) {
   EXPECT_THROW(projection_gram(m, std::vector<bool>(3, false)), Error);
   EXPECT_THROW(projection_gram(m, none, 0, 9), Error);
 }
+
+// frame_information() against an independent computation: central differences of the projection
+// in the rotation-vector parametrisation, then the Schur complement onto the free intrinsics.
+TEST(Calibration, FrameInformationIsTheSchurComplementOfOneView) {
+  const CameraModel m = CameraModel::opencv5(1280, 720, 1100, 1080, 650, 350, {-0.3, 0.15, 0.002, -0.001, -0.05});
+  const Target board(TargetSpec{});
+  const Pose T = board_pose_at(board, Eigen::Vector3d(0.03, -0.02, 0.45), 0.7, 0.6, 0.4);
+  ASSERT_TRUE(board_fully_visible(m, board, T));
+  for (const std::vector<bool>& fixed :
+       {std::vector<bool>(9, false), std::vector<bool>{false, false, false, false, false, false, true, true, true}}) {
+    std::vector<int> free_idx;
+    for (int i = 0; i < 9; ++i)
+      if (!fixed[i]) free_idx.push_back(i);
+    const int f = static_cast<int>(free_idx.size());
+    Eigen::MatrixXd A = Eigen::MatrixXd::Zero(f, f), B = Eigen::MatrixXd::Zero(f, 6), D = Eigen::MatrixXd::Zero(6, 6);
+    auto project = [&](const CameraModel& mm, const Pose& p, const cv::Point3d& P) {
+      Eigen::Vector2d uv;
+      EXPECT_TRUE(mm.project(p.apply(Eigen::Vector3d(P.x, P.y, P.z)), &uv));
+      return uv;
+    };
+    for (const cv::Point3d& P : board.corners()) {
+      Eigen::MatrixXd Ji(2, f), Jp(2, 6);
+      for (int k = 0; k < f; ++k) {
+        const double h = 1e-6 * std::max(1.0, std::abs(m.params()[free_idx[k]]));
+        CameraModel a = m, b = m;
+        a.params()[free_idx[k]] += h;
+        b.params()[free_idx[k]] -= h;
+        Ji.col(k) = (project(a, T, P) - project(b, T, P)) / (2 * h);
+      }
+      for (int k = 0; k < 6; ++k) {
+        const double h = 1e-7;
+        Pose a = T, b = T;
+        (k < 3 ? a.r : a.t)[k % 3] += h;
+        (k < 3 ? b.r : b.t)[k % 3] -= h;
+        Jp.col(k) = (project(m, a, P) - project(m, b, P)) / (2 * h);
+      }
+      A += Ji.transpose() * Ji;
+      B += Ji.transpose() * Jp;
+      D += Jp.transpose() * Jp;
+    }
+    const Eigen::MatrixXd expected = A - B * D.ldlt().solve(B.transpose());
+    const Eigen::MatrixXd got = frame_information(m, T, board.corners(), fixed);
+    ASSERT_EQ(got.rows(), f);
+    ASSERT_EQ(got.cols(), f);
+    // Compare in a scale-free way: the predicted standard deviations and correlations.
+    const Eigen::MatrixXd ce = expected.inverse(), cg = got.inverse();
+    for (int i = 0; i < f; ++i) {
+      EXPECT_NEAR(std::sqrt(cg(i, i)) / std::sqrt(ce(i, i)), 1.0, 1e-4) << "parameter " << free_idx[i];
+      for (int j = 0; j < i; ++j)
+        EXPECT_NEAR(cg(i, j) / std::sqrt(cg(i, i) * cg(j, j)), ce(i, j) / std::sqrt(ce(i, i) * ce(j, j)), 1e-4);
+    }
+  }
+  EXPECT_THROW(frame_information(m, T, board.corners(), std::vector<bool>(5, false)), Error);
+}
