@@ -5,9 +5,12 @@
 #include <cstdio>
 #include <limits>
 #include <map>
+#include <optional>
+#include <random>
 #include <opencv2/imgproc.hpp>
 
 #include "posecal/error.hpp"
+#include "posecal/views.hpp"
 
 namespace posecal {
 
@@ -55,6 +58,7 @@ bool EngineOptions::is_valid(std::string* error) const {
   if (!(jaccard_threshold > 0 && jaccard_threshold < 1)) return fail("jaccard_threshold must be in (0, 1)");
   if (target_timeout_frames < 0) return fail("target_timeout_frames must be >= 0");
   if (pose_candidates < 1 || pose_candidates > 64) return fail("pose_candidates must be in [1, 64]");
+  if (view_candidates < 0 || view_candidates > 4096) return fail("view_candidates must be in [0, 4096]");
   if (!measured_convergence && !prospective_convergence)
     return fail("measured_convergence and prospective_convergence cannot both be off");
   if (bootstrap_min_corners < 0) return fail("bootstrap_min_corners must be >= 0");
@@ -69,6 +73,19 @@ bool EngineOptions::is_valid(std::string* error) const {
   if (!posegen.is_valid(&why)) return fail("posegen: " + why);
   if (!calibration.is_valid(&why)) return fail("calibration: " + why);
   return true;
+}
+
+size_t choose_candidate(const std::vector<double>& score, const std::vector<double>& target_var, size_t n_rule) {
+  if (score.size() != target_var.size() || n_rule == 0 || n_rule > score.size()) {
+    throw Error(ErrorCode::kInvalidArgument, "choose_candidate: sizes");
+  }
+  size_t pick = 0;
+  for (size_t i = 1; i < n_rule; ++i)
+    if (score[i] < score[pick]) pick = i;
+  const double rule_var = target_var[pick];
+  for (size_t i = n_rule; i < score.size(); ++i)
+    if (target_var[i] <= rule_var && score[i] < score[pick]) pick = i;
+  return pick;
 }
 
 std::vector<int> ratio_test(const std::vector<double>& var_before, const std::vector<double>& var_after,
@@ -260,6 +277,10 @@ struct CalibrationEngine::Impl {
   }
 
   void choose_refinement_target() {
+    // The estimate does not change while parameters converge prospectively below, so the scoring
+    // matrices are computed once per choice.
+    const bool scoring = opt.pose_candidates > 1 || opt.prospective_convergence;
+    if (scoring) prepare_scoring();
     while (true) {
       // MaxIOD (paper §4.1): the parameter with the highest index of dispersion among those not
       // converged.
@@ -275,20 +296,25 @@ struct CalibrationEngine::Impl {
       if (best < 0) return;
       std::vector<TargetPose> cands = posegen.candidates(best, estimate, opt.pose_candidates);
       if (cands.empty()) throw Error(ErrorCode::kInternal, "pose generation produced no candidate");
+      const size_t n_rule = cands.size();
+      if (scoring && opt.view_candidates > 0) {
+        std::vector<TargetPose> views = view_candidates();
+        cands.insert(cands.end(), std::make_move_iterator(views.begin()), std::make_move_iterator(views.end()));
+      }
       size_t pick = 0;
       // Predicted variance of `best` after the candidate that will be captured: the prospective
       // test asks whether the keyframe the engine is about to request would help it.
       double pick_var = std::numeric_limits<double>::infinity();
-      if (opt.pose_candidates > 1 || opt.prospective_convergence) {
-        prepare_scoring();
-        double pick_score = std::numeric_limits<double>::infinity();
+      if (scoring) {
         const int k = free_position(best);
+        std::vector<double> score(cands.size()), var(cands.size());
         for (size_t i = 0; i < cands.size(); ++i) {
           const Eigen::MatrixXd cov = predicted_covariance(cands[i]);
-          const double v = k < 0 ? 0.0 : cov(k, k);
-          const double sc = opt.candidate_score == EngineOptions::CandidateScore::kProjection ? (gram * cov).trace() : v;
-          if (sc < pick_score) pick_score = sc, pick = i, pick_var = v;
+          var[i] = k < 0 ? 0.0 : cov(k, k);
+          score[i] = opt.candidate_score == EngineOptions::CandidateScore::kProjection ? (gram * cov).trace() : var[i];
         }
+        pick = choose_candidate(score, var, n_rule);
+        pick_var = var[pick];
       }
       if (opt.prospective_convergence) {
         const double now = result->std_unit[best] * result->std_unit[best];
@@ -300,10 +326,33 @@ struct CalibrationEngine::Impl {
           continue;
         }
       }
-      posegen.commit(cands[pick]);
+      if (cands[pick].kind != "view") posegen.commit(cands[pick]);
       set_target(cands[pick], best);
       return;
     }
+  }
+
+  // opt.view_candidates random views of the whole board under the current estimate; the seed
+  // depends only on the keyframe count, so a run is reproducible.
+  std::vector<TargetPose> view_candidates() const {
+    ViewSampling vs;
+    // Where the best views of a large random pool lie (explore_information: median tilt 22 deg,
+    // 56% of the width); sampling there beats sampling wider with the same count.
+    vs.max_tilt_deg = 40;
+    vs.min_width_fraction = 0.4;
+    vs.max_width_fraction = 0.8;
+    vs.margin_px = opt.posegen.border_margin_fraction * std::max(size.width, size.height);
+    std::mt19937_64 rng(0x5eed0000u + keyframes.size());
+    std::vector<TargetPose> out;
+    for (int i = 0; i < opt.view_candidates; ++i) {
+      const std::optional<Pose> p = random_board_view(rng, estimate, board, vs);
+      if (!p) break;  // the estimate cannot show the whole board with these limits
+      TargetPose t;
+      t.T_cam_board = *p;
+      t.kind = "view";
+      out.push_back(std::move(t));
+    }
+    return out;
   }
 
   // Predicted covariance of the free intrinsics after capturing `t` (Sigma_p = I), exact at the

@@ -3,6 +3,9 @@
 //   --benchmark_report_aggregates_only=true   (docs/performance.md)
 #include <benchmark/benchmark.h>
 
+#include <optional>
+#include <random>
+
 #include "posecal/calibration.hpp"
 #include "posecal/engine.hpp"
 #include "posecal/posegen.hpp"
@@ -193,6 +196,64 @@ static void BM_TargetPose_ProjectionScored6(benchmark::State& state) {
   }
 }
 BENCHMARK(BM_TargetPose_ProjectionScored6)->Arg(2)->Arg(4)->Unit(benchmark::kMicrosecond);
+
+// As above with EngineOptions::view_candidates = N: N random views of the whole board (the
+// engine's sampling: tilt <= 40 deg, 40-80% of the width, 2% margin) are drawn and scored after
+// the 6 rule candidates; a view counts only if it reduces the targeted parameter's variance at
+// least as much as the rule pick.
+static void BM_TargetPose_ProjectionScored6_Views(benchmark::State& state) {
+  Fixture& f = fixture();
+  const int param = static_cast<int>(state.range(0));
+  const int n_views = static_cast<int>(state.range(1));
+  const Eigen::MatrixXd info = intrinsics_information(f.nine);
+  ViewSampling vs;
+  vs.max_tilt_deg = 40;
+  vs.min_width_fraction = 0.4;
+  vs.max_width_fraction = 0.8;
+  vs.margin_px = 0.02 * std::max(f.truth.width(), f.truth.height());
+  uint64_t seed = 1;
+  for (auto _ : state) {
+    state.PauseTiming();
+    PoseGenerator pg(f.target, f.truth.size());
+    std::mt19937_64 rng(seed++);
+    state.ResumeTiming();
+    const Eigen::MatrixXd G = projection_gram(f.nine.model, f.nine.fixed, 8, 5);
+    std::vector<TargetPose> cands = pg.candidates(param, f.nine.model, 6);
+    const size_t n_rule = cands.size();
+    for (int i = 0; i < n_views; ++i) {
+      const std::optional<Pose> p = random_board_view(rng, f.nine.model, f.target, vs);
+      if (!p) break;
+      TargetPose t;
+      t.T_cam_board = *p;
+      t.kind = "view";
+      cands.push_back(t);
+    }
+    std::vector<double> score(cands.size()), var(cands.size());
+    for (size_t i = 0; i < cands.size(); ++i) {
+      const Eigen::MatrixXd I = info + frame_information(f.nine.model, cands[i].T_cam_board, f.target.corners(), f.nine.fixed);
+      const Eigen::MatrixXd cov = I.ldlt().solve(Eigen::MatrixXd::Identity(9, 9));
+      var[i] = cov(param, param);
+      score[i] = (G * cov).trace();
+    }
+    const size_t pick = choose_candidate(score, var, n_rule);
+    const double pick_var = var[pick];
+    if (cands[pick].kind != "view") pg.commit(cands[pick]);
+    benchmark::DoNotOptimize(pick_var);
+    benchmark::DoNotOptimize(cands[pick].T_cam_board.t.data());
+  }
+}
+BENCHMARK(BM_TargetPose_ProjectionScored6_Views)->Args({2, 100})->Args({2, 300})->Unit(benchmark::kMicrosecond);
+
+// frame_information() alone: one view of the 40-corner board (the unit of every candidate score).
+static void BM_FrameInformation_40Corners(benchmark::State& state) {
+  Fixture& f = fixture();
+  const Pose T = random_board_views(7, 1, f.truth, f.target)[0];
+  for (auto _ : state) {
+    const Eigen::MatrixXd I = frame_information(f.nine.model, T, f.target.corners(), f.nine.fixed);
+    benchmark::DoNotOptimize(I.data());
+  }
+}
+BENCHMARK(BM_FrameInformation_40Corners)->Unit(benchmark::kMicrosecond);
 
 // The projection Gram matrix alone, over the engine's 8x5 rays and the benchmark's 40x23.
 static void BM_ProjectionGram(benchmark::State& state) {

@@ -389,6 +389,10 @@ static void test_session_arguments(posecal_context* ctx) {
   EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"convergence_measure\":\"cat\"}", &s));
   EXPECT_MESSAGE("convergence_measure");
   EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"measured_convergence\":\"no\"}", &s));
+  EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"view_candidates\":-1}", &s));
+  EXPECT_MESSAGE("view_candidates");
+  EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"view_candidates\":5000}", &s));
+  EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"view_candidates\":2.5}", &s));
   EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"target\":\"charuco:1x1\"}", &s));
   EXPECT_INVALID(
       posecal_session_open(ctx, "sim://?operator=robot", "{\"operator\":\"person\"}", &s));

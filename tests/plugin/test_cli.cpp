@@ -221,6 +221,18 @@ TEST(Cli, SimulateWithFixedParameters) {
   EXPECT_NE(r.out.find("candidate_score"), std::string::npos) << r.out;
 }
 
+// --views: generic view candidates through the CLI and the session config.
+TEST(Cli, SimulateWithViewCandidates) {
+  CliRun r = run("simulate --seed 5 --views 100 --measure std --json", true);
+  ASSERT_EQ(r.status, 0) << r.out;
+  const auto j = nlohmann::json::parse(r.out);
+  EXPECT_TRUE(j["converged"].get<bool>());
+  EXPECT_LE(j["keyframes"].get<int>(), 20);
+  r = run("simulate --views -1");
+  EXPECT_EQ(r.status, 1);
+  EXPECT_NE(r.out.find("views"), std::string::npos) << r.out;
+}
+
 // posecal station over four simulated cameras: all converge, one result file per camera named
 // by its identity, and a summary.
 TEST(Cli, StationOfFourSimulatedCamerasConverges) {

@@ -1,6 +1,8 @@
 // The calibration engine: ratio test, every state transition, events, bad input.
 #include <gtest/gtest.h>
 
+#include <memory>
+
 #include "posecal/engine.hpp"
 #include "posecal/error.hpp"
 #include "posecal/session.hpp"
@@ -344,6 +346,32 @@ TEST(Engine, PersonAndRobotSessionsConverge) {
   }
 }
 
+// A simulated robot session (seed 11) stepped until the engine has its first refinement target;
+// `param` receives the targeted parameter. Null (with a test failure) if it never gets there.
+static std::unique_ptr<CalibrationSession> robot_session_at_first_refinement(EngineOptions eo, std::string* param) {
+  const Uri uri = Uri::parse("sim://?seed=11&operator=robot");
+  SimCameraOptions so = sim_options_from_uri(uri, TargetSpec{});
+  eo.robot = true;
+  eo.target_timeout_frames = 36;
+  auto s = std::make_unique<CalibrationSession>(make_sim_camera(so), eo);
+  param->clear();
+  s->set_event_callback([param](const SessionEvent& e) {
+    if (e.engine && e.engine->kind == EngineEvent::Kind::kTargetChanged && !e.engine->parameter.empty() &&
+        param->empty()) {
+      *param = e.engine->parameter;
+    }
+  });
+  for (int f = 0; f < 400 && !s->finished(); ++f) {
+    s->step(1000);
+    if (s->engine().state() == EngineState::kRefining) break;
+  }
+  const bool ok = s->engine().state() == EngineState::kRefining && s->engine().target().has_value() && !param->empty();
+  EXPECT_TRUE(ok) << "no refinement target: " << engine_state_name(s->engine().state());
+  if (!ok) return nullptr;
+  s->set_event_callback(nullptr);
+  return s;
+}
+
 // The first refinement target is the candidate with the best score: the lowest expected
 // projection error over the image (kProjection) or the lowest predicted variance of the targeted
 // parameter (kParameterVariance), recomputed here from the engine's calibration and a fresh
@@ -351,27 +379,12 @@ TEST(Engine, PersonAndRobotSessionsConverge) {
 TEST(Engine, FirstRefinementTargetIsTheBestScoredCandidate) {
   using Score = EngineOptions::CandidateScore;
   for (const Score score : {Score::kProjection, Score::kParameterVariance}) {
-    const Uri uri = Uri::parse("sim://?seed=11&operator=robot");
-    SimCameraOptions so = sim_options_from_uri(uri, TargetSpec{});
     EngineOptions eo;
-    eo.robot = true;
-    eo.target_timeout_frames = 36;
     eo.candidate_score = score;
-    CalibrationSession s(make_sim_camera(so), eo);
     std::string param;
-    s.set_event_callback([&](const SessionEvent& e) {
-      if (e.engine && e.engine->kind == EngineEvent::Kind::kTargetChanged && !e.engine->parameter.empty() &&
-          param.empty()) {
-        param = e.engine->parameter;
-      }
-    });
-    for (int f = 0; f < 400 && !s.finished(); ++f) {
-      s.step(1000);
-      if (s.engine().state() == EngineState::kRefining) break;
-    }
-    ASSERT_EQ(s.engine().state(), EngineState::kRefining);
-    ASSERT_TRUE(s.engine().target().has_value());
-    ASSERT_FALSE(param.empty());
+    std::unique_ptr<CalibrationSession> session = robot_session_at_first_refinement(eo, &param);
+    if (!session) return;
+    CalibrationSession& s = *session;
     const CalibrationResult& res = *s.engine().result();
     const CameraModel& est = s.engine().estimate();
     ASSERT_EQ(std::count(res.fixed.begin(), res.fixed.end(), true), 0);
@@ -401,4 +414,69 @@ TEST(Engine, FirstRefinementTargetIsTheBestScoredCandidate) {
     // The scores differ between candidates: the choice is not the first candidate by default.
     EXPECT_GT(*std::max_element(scores.begin(), scores.end()), 1.01 * best_score);
   }
+}
+
+// With view_candidates, a generic view replaces the rule's pose only when it reduces the targeted
+// parameter's variance at least as much as the rule's pick and leaves a lower expected projection
+// error; it shows the whole board within the generator's margin, tilted at most 40 degrees.
+TEST(Engine, ViewCandidateWinsOnlyWhenItServesTheTarget) {
+  // The distortion is held fixed so that the first refinement target is a pinhole parameter (with
+  // distortion free, MaxIOD picks a distortion coefficient first, whose small, far rule boards a
+  // mid-size view rarely beats).
+  {
+    EngineOptions eo;
+    eo.view_candidates = 300;
+    eo.calibration.fixed = {"k1", "k2", "p1", "p2", "k3"};
+    std::string param;
+    std::unique_ptr<CalibrationSession> session = robot_session_at_first_refinement(eo, &param);
+    if (!session) return;
+    CalibrationSession& s = *session;
+    const CameraModel& est = s.engine().estimate();
+    const auto& names = est.param_names();
+    const int p = static_cast<int>(std::find(names.begin(), names.end(), param) - names.begin());
+    ASSERT_LT(p, est.num_params());
+    ASSERT_EQ(param_group(p), ParamGroup::kPinhole) << param;
+    const TargetPose& got = *s.engine().target();
+    ASSERT_EQ(got.kind, "view") << "300 views and none better than the rule's pose for " << param;
+    const CalibrationResult& res = *s.engine().result();
+    const Target board(eo.target);
+    PoseGenerator pg(board, est.size(), eo.posegen);
+    const std::vector<TargetPose> cands = pg.candidates(p, est, eo.pose_candidates);
+    const Eigen::MatrixXd info = intrinsics_information(res);
+    const Eigen::MatrixXd G = projection_gram(est, res.fixed, 8, 5);
+    auto predicted = [&](const Pose& T) {
+      return Eigen::MatrixXd((info + frame_information(est, T, board.corners(), res.fixed)).inverse());
+    };
+    double rule_score = 1e300, rule_var = 0;
+    for (const TargetPose& c : cands) {
+      const Eigen::MatrixXd cov = predicted(c.T_cam_board);
+      if ((G * cov).trace() < rule_score) rule_score = (G * cov).trace(), rule_var = cov(p, p);
+    }
+    const Eigen::MatrixXd cov = predicted(got.T_cam_board);
+    EXPECT_LE(cov(p, p), rule_var * (1 + 1e-9)) << param;
+    EXPECT_LT((G * cov).trace(), rule_score);
+    const double margin = eo.posegen.border_margin_fraction * std::max(est.width(), est.height());
+    EXPECT_TRUE(board_fully_visible(est, board, got.T_cam_board, margin - 1e-6));
+    const double tilt = std::acos(std::min(1.0, std::abs(got.T_cam_board.R()(2, 2)))) * 180 / M_PI;
+    EXPECT_LE(tilt, 40.0 + 1e-6);
+  }
+}
+
+TEST(Engine, ChooseCandidateLetsAViewWinOnlyIfItServesTheTarget) {
+  // Rule candidates 0..2 (the best-scored is 1, leaving the target's variance at 2.0), then views.
+  const std::vector<double> rule_score = {5, 3, 4}, rule_var = {1.0, 2.0, 0.5};
+  auto choose = [&](std::vector<double> view_score, std::vector<double> view_var) {
+    std::vector<double> s = rule_score, v = rule_var;
+    s.insert(s.end(), view_score.begin(), view_score.end());
+    v.insert(v.end(), view_var.begin(), view_var.end());
+    return choose_candidate(s, v, rule_score.size());
+  };
+  EXPECT_EQ(choose({}, {}), 1u);                       // the rule pick, by score alone
+  EXPECT_EQ(choose({1.0}, {3.0}), 1u);                 // better score, but worse for the target
+  EXPECT_EQ(choose({1.0, 2.0}, {3.0, 2.0}), 4u);       // the best view that serves the target
+  EXPECT_EQ(choose({2.0, 1.5}, {1.9, 0.1}), 4u);       // among serving views, the best score
+  EXPECT_EQ(choose({3.0}, {0.1}), 1u);                 // a tie in score keeps the rule pick
+  EXPECT_THROW(choose_candidate({1, 2}, {1}, 1), Error);
+  EXPECT_THROW(choose_candidate({1, 2}, {1, 2}, 0), Error);
+  EXPECT_THROW(choose_candidate({1, 2}, {1, 2}, 3), Error);
 }

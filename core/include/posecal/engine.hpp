@@ -63,6 +63,14 @@ struct EngineOptions {
   // the lowest predicted variance of the targeted parameter. The prospective test uses the
   // targeted parameter's predicted variance after the chosen candidate (docs/pose-selection.md).
   enum class CandidateScore { kProjection, kParameterVariance } candidate_score = CandidateScore::kProjection;
+  // Generic board views scored alongside the rule candidates (experimental, default off = the
+  // paper's pose families only): this many random views with the whole board in view (tilt up to
+  // 40 degrees about any in-plane axis, 40-80% of the image width, anywhere in the image, the
+  // pose generator's border margin), drawn from the current estimate with a seed fixed by the
+  // keyframe count. A view competes only if it would reduce the targeted (MaxIOD) parameter's
+  // variance at least as much as the best rule candidate does; among those the best score wins
+  // (docs/pose-selection.md, "Generic view candidates").
+  int view_candidates = 0;
   // Ratio test measure: kVariance = 1 - sigma'^2 / sigma^2 (paper §4.1); kStd = 1 - sigma' /
   // sigma (the reference implementation; at 10% it equals a 19% variance reduction).
   enum class ConvergenceMeasure { kVariance, kStd } convergence_measure = ConvergenceMeasure::kVariance;
@@ -127,6 +135,13 @@ struct ParameterStatus {
   bool converged = false;
   int targeted = 0;      // keyframes captured for this parameter
 };
+
+// Which candidate pose to capture, given each candidate's score (lower is better) and the
+// targeted parameter's predicted variance after it: the best-scored of the rule candidates
+// [0, n_rule), replaced by a generic view [n_rule, size) only if the view scores lower and leaves
+// the targeted parameter's variance no higher than the rule pick does (EngineOptions::
+// view_candidates). Throws Error(kInvalidArgument) on inconsistent sizes or no rule candidate.
+size_t choose_candidate(const std::vector<double>& score, const std::vector<double>& target_var, size_t n_rule);
 
 // The ratio test (paper §4.1) after a keyframe captured for parameter `targeted`: returns the
 // parameters of the targeted parameter's group that converge, given each parameter's variance
