@@ -20,6 +20,13 @@ Pose board_pose_at(const Target& target, const Eigen::Vector3d& centre_cam, doub
 bool board_fully_visible(const CameraModel& model, const Target& target, const Pose& T_cam_board,
                          double margin_px) {
   const auto outline = target.outline();
+  auto inside = [&](const cv::Point2d& p) {
+    return std::isfinite(p.x) && std::isfinite(p.y) && p.x >= margin_px && p.y >= margin_px &&
+           p.x <= model.width() - 1 - margin_px && p.y <= model.height() - 1 - margin_px;
+  };
+  // The sheet's four corners are among the points checked below: a cheap early rejection.
+  for (const cv::Point2d& p : project_points(model, T_cam_board, outline))
+    if (!inside(p)) return false;
   std::vector<cv::Point3d> pts = target.corners();
   constexpr int kSteps = 16;
   for (int e = 0; e < 4; ++e) {
@@ -28,13 +35,8 @@ bool board_fully_visible(const CameraModel& model, const Target& target, const P
     for (int s = 0; s < kSteps; ++s) pts.push_back(a + (b - a) * (static_cast<double>(s) / kSteps));
   }
   const auto proj = project_points(model, T_cam_board, pts);
-  for (const auto& p : proj) {
-    if (!std::isfinite(p.x) || !std::isfinite(p.y)) return false;
-    if (p.x < margin_px || p.y < margin_px || p.x > model.width() - 1 - margin_px ||
-        p.y > model.height() - 1 - margin_px) {
-      return false;
-    }
-  }
+  for (const auto& p : proj)
+    if (!inside(p)) return false;
   // A board seen almost edge-on, or folded by the distortion model, is no use either: the
   // projected outline must stay convex and counter-clockwise-consistent.
   const auto quad = project_points(model, T_cam_board, outline);
