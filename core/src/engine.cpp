@@ -344,8 +344,15 @@ struct CalibrationEngine::Impl {
     vs.margin_px = opt.posegen.border_margin_fraction * std::max(size.width, size.height);
     std::mt19937_64 rng(0x5eed0000u + keyframes.size());
     std::vector<TargetPose> out;
-    for (int i = 0; i < opt.view_candidates; ++i) {
-      const std::optional<Pose> p = random_board_view(rng, estimate, board, vs);
+    // A bounded number of draws in all (a C525-class view takes about 40): an estimate under which
+    // the board rarely fits costs fewer views, not an unbounded search.
+    constexpr int kDrawsPerView = 200;
+    long budget = static_cast<long>(kDrawsPerView) * opt.view_candidates;
+    for (int i = 0; i < opt.view_candidates && budget > 0; ++i) {
+      vs.max_tries = static_cast<int>(std::min<long>(2000, budget));
+      int draws = 0;
+      const std::optional<Pose> p = random_board_view(rng, estimate, board, vs, &draws);
+      budget -= draws;
       if (!p) break;  // the estimate cannot show the whole board with these limits
       TargetPose t;
       t.T_cam_board = *p;

@@ -51,11 +51,13 @@ bool board_fully_visible(const CameraModel& model, const Target& target, const P
 }
 
 std::optional<Pose> random_board_view(std::mt19937_64& rng, const CameraModel& model,
-                                      const Target& target, const ViewSampling& s) {
+                                      const Target& target, const ViewSampling& s, int* draws) {
+  if (draws) *draws = 0;
   std::uniform_real_distribution<double> U(0.0, 1.0);
   const cv::Size2d bs = target.board_size_m();
   const double pi = 3.14159265358979323846;
   for (int attempt = 0; attempt < s.max_tries; ++attempt) {
+    if (draws) *draws = attempt + 1;
     const double frac =
         s.min_width_fraction + (s.max_width_fraction - s.min_width_fraction) * U(rng);
     const double depth = model.fx() * bs.width / (frac * model.width());

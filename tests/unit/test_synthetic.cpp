@@ -1,5 +1,10 @@
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <cmath>
+#include <optional>
+#include <random>
+
 #include "posecal/error.hpp"
 #include "posecal/synthetic.hpp"
 #include "posecal/views.hpp"
@@ -122,4 +127,34 @@ TEST(SyntheticCamera, RejectsBadOptions) {
   CameraModel bad = c525_reference_model();
   bad.params()[0] = -5;
   EXPECT_THROW(SyntheticCamera(bad, Target()), Error);
+}
+
+// Random views honour their limits and say how many draws they took; a board that cannot fit
+// ends after max_tries draws with no view.
+TEST(Views, RandomViewsHonourTheirLimitsAndCountDraws) {
+  const CameraModel cam = c525_reference_model();
+  const Target target;
+  ViewSampling vs;
+  vs.max_tilt_deg = 40;
+  vs.min_width_fraction = 0.4;
+  vs.max_width_fraction = 0.8;
+  vs.margin_px = 25.6;
+  std::mt19937_64 rng(3);
+  long total = 0;
+  for (int i = 0; i < 50; ++i) {
+    int draws = -1;
+    const std::optional<Pose> p = random_board_view(rng, cam, target, vs, &draws);
+    ASSERT_TRUE(p.has_value());
+    EXPECT_GE(draws, 1);
+    EXPECT_LE(draws, vs.max_tries);
+    total += draws;
+    EXPECT_TRUE(board_fully_visible(cam, target, *p, vs.margin_px));
+    EXPECT_LE(std::acos(std::min(1.0, std::abs(p->R()(2, 2)))) * 180 / M_PI, 40.0 + 1e-6);
+  }
+  EXPECT_GT(total, 50);  // most draws of a large board miss the image
+  vs.margin_px = 400;   // nothing fits inside a 1280x720 image with 400 px margins
+  vs.max_tries = 37;
+  int draws = -1;
+  EXPECT_FALSE(random_board_view(rng, cam, target, vs, &draws).has_value());
+  EXPECT_EQ(draws, 37);
 }

@@ -33,8 +33,10 @@ struct ViewSampling {
 };
 
 // A random view with the board fully visible, or nullopt if none was found in max_tries.
+// `draws` (optional) receives the number of draws it took.
 std::optional<Pose> random_board_view(std::mt19937_64& rng, const CameraModel& model,
-                                      const Target& target, const ViewSampling& sampling = {});
+                                      const Target& target, const ViewSampling& sampling = {},
+                                      int* draws = nullptr);
 
 // `count` random views (throws Error(kInternal) if the camera cannot see the board at all).
 std::vector<Pose> random_board_views(uint64_t seed, int count, const CameraModel& model,
