@@ -75,7 +75,8 @@ bool EngineOptions::is_valid(std::string* error) const {
   return true;
 }
 
-size_t choose_candidate(const std::vector<double>& score, const std::vector<double>& target_var, size_t n_rule) {
+size_t choose_candidate(const std::vector<double>& score, const std::vector<double>& target_var, size_t n_rule,
+                        bool must_serve_target) {
   if (score.size() != target_var.size() || n_rule == 0 || n_rule > score.size()) {
     throw Error(ErrorCode::kInvalidArgument, "choose_candidate: sizes");
   }
@@ -84,7 +85,7 @@ size_t choose_candidate(const std::vector<double>& score, const std::vector<doub
     if (score[i] < score[pick]) pick = i;
   const double rule_var = target_var[pick];
   for (size_t i = n_rule; i < score.size(); ++i)
-    if (target_var[i] <= rule_var && score[i] < score[pick]) pick = i;
+    if ((!must_serve_target || target_var[i] <= rule_var) && score[i] < score[pick]) pick = i;
   return pick;
 }
 
@@ -313,7 +314,7 @@ struct CalibrationEngine::Impl {
           var[i] = k < 0 ? 0.0 : cov(k, k);
           score[i] = opt.candidate_score == EngineOptions::CandidateScore::kProjection ? (gram * cov).trace() : var[i];
         }
-        pick = choose_candidate(score, var, n_rule);
+        pick = choose_candidate(score, var, n_rule, opt.view_must_serve_target);
         pick_var = var[pick];
       }
       if (opt.prospective_convergence) {

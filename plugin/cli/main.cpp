@@ -182,6 +182,7 @@ void print_usage() {
       "      [--score projection|variance (how candidate poses are compared; projection: the\n"
       "       expected projection error over the image)]\n"
       "      [--views N (0: rule poses only; N random views of the whole board also compete)]\n"
+      "      [--views-serve-target (a view must also help the targeted parameter)]\n"
       "\n"
       "SPEC: charuco:COLSxROWS:SQUARE_M:MARKER_M:DICT (default "
       "charuco:9x6:0.028:0.0182:DICT_4X4_50)\n"
@@ -249,6 +250,7 @@ Json session_config(const Args& args) {
   if (args.has("max-keyframes")) cfg["max_keyframes"] = args.integer("max-keyframes", 20, 3, 1000);
   if (args.has("candidates")) cfg["pose_candidates"] = args.integer("candidates", 6, 1, 64);
   if (args.has("views")) cfg["view_candidates"] = args.integer("views", 0, 0, 4096);
+  if (args.flag("views-serve-target")) cfg["view_must_serve_target"] = true;
   if (args.has("target-timeout-frames")) {
     cfg["target_timeout_frames"] = args.integer("target-timeout-frames", 0, 0, 1000000);
   }
@@ -995,20 +997,20 @@ int main(int argc, char** argv) {
       return cmd_calibrate(Args(
           argc, argv, 2,
           {"json", "fix-principal-point", "fix-aspect-ratio", "zero-tangential", "no-window",
-           "prospective-only"},
+           "prospective-only", "views-serve-target"},
           {"images", "target", "out", "camera", "guide", "timeout-ms", "max-seconds", "threshold",
            "max-keyframes", "candidates", "target-timeout-frames", "reply-timeout-s", "fix", "measure", "score", "views"}));
     }
     if (cmd == "simulate") {
       return cmd_simulate(
-          Args(argc, argv, 2, {"json", "events", "prospective-only"},
+          Args(argc, argv, 2, {"json", "events", "prospective-only", "views-serve-target"},
                {"camera-model", "seed", "operator", "noise", "blur", "out", "target", "threshold",
                 "max-keyframes", "max-frames", "candidates", "target-timeout-frames", "fix", "measure",
                 "score", "views"}));
     }
     if (cmd == "station") {
       return cmd_station(
-          Args(argc, argv, 2, {"json", "events", "prospective-only"},
+          Args(argc, argv, 2, {"json", "events", "prospective-only", "views-serve-target"},
                {"cameras", "out-dir", "target", "format", "max-seconds", "timeout-ms", "threshold",
                 "max-keyframes", "candidates", "target-timeout-frames", "fix", "measure", "score", "views"}));
     }

@@ -209,9 +209,10 @@ typedef struct posecal_image {
  *   implementation's, fewer keyframes, less accurate), "measured_convergence" (true; false:
  *   parameters converge only when the best next pose would not help, more keyframes, more
  *   accurate; docs/benchmarks.md), "candidate_score" ("projection" | "variance"),
- *   "view_candidates" (0; n > 0: also score n random views of the whole board and capture one
- *   when it helps the targeted parameter at least as much as the rule's pose and the whole
- *   image more; docs/pose-selection.md, "Generic view candidates")
+ *   "view_candidates" (0; n > 0: also score n random views of the whole board and capture the
+ *   best-scored pose, view or rule; docs/pose-selection.md, "Generic view candidates"),
+ *   "view_must_serve_target" (false; true: a view must also reduce the targeted parameter's
+ *   variance at least as much as the rule's pose)
  * An unknown key is POSECAL_E_INVALID_ARGUMENT. Opening a camera may block up to ~3 s. The
  * camera starts streaming at the first posecal_session_step. */
 POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char* camera_uri,

@@ -120,6 +120,7 @@ EngineOptions engine_options(const Json& c, bool* lock_settings) {
       get_int(c, "target_timeout_frames", o.target_timeout_frames, 0, 1000000, kConfig);
   o.pose_candidates = get_int(c, "pose_candidates", o.pose_candidates, 1, 64, kConfig);
   o.view_candidates = get_int(c, "view_candidates", o.view_candidates, 0, 4096, kConfig);
+  o.view_must_serve_target = get_bool(c, "view_must_serve_target", o.view_must_serve_target, kConfig);
   o.posegen.max_tilt_deg = get_double(c, "max_tilt_deg", o.posegen.max_tilt_deg, 1, 89, kConfig);
   *lock_settings = get_bool(c, "lock_settings", true, kConfig);
   using Measure = EngineOptions::ConvergenceMeasure;
@@ -310,7 +311,8 @@ POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char
         {"target", "operator", "convergence_threshold", "max_keyframes", "jaccard_threshold",
          "still_motion_px", "constraint_factor", "target_timeout_frames", "pose_candidates",
          "lock_settings", "max_tilt_deg", "fixed", "convergence_measure",
-         "measured_convergence", "candidate_score", "view_candidates"},
+         "measured_convergence", "candidate_score", "view_candidates",
+         "view_must_serve_target"},
         kConfig);
     bool lock = true;
     EngineOptions eo = engine_options(c, &lock);

@@ -199,8 +199,7 @@ BENCHMARK(BM_TargetPose_ProjectionScored6)->Arg(2)->Arg(4)->Unit(benchmark::kMic
 
 // As above with EngineOptions::view_candidates = N: N random views of the whole board (the
 // engine's sampling: tilt <= 40 deg, 40-80% of the width, 2% margin) are drawn and scored after
-// the 6 rule candidates; a view counts only if it reduces the targeted parameter's variance at
-// least as much as the rule pick.
+// the 6 rule candidates; the best score wins (the engine's default choice).
 static void BM_TargetPose_ProjectionScored6_Views(benchmark::State& state) {
   Fixture& f = fixture();
   const int param = static_cast<int>(state.range(0));
@@ -235,7 +234,7 @@ static void BM_TargetPose_ProjectionScored6_Views(benchmark::State& state) {
       var[i] = cov(param, param);
       score[i] = (G * cov).trace();
     }
-    const size_t pick = choose_candidate(score, var, n_rule);
+    const size_t pick = choose_candidate(score, var, n_rule, false);
     const double pick_var = var[pick];
     if (cands[pick].kind != "view") pg.commit(cands[pick]);
     benchmark::DoNotOptimize(pick_var);

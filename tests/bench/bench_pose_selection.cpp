@@ -97,6 +97,7 @@ double g_distortion_tilt_deg = -1;
 // --score variance|projection: overrides EngineOptions::candidate_score of any configuration.
 std::string g_score;
 int g_views = 0;  // --views N: EngineOptions::view_candidates
+bool g_serve = false;  // --views-serve-target: EngineOptions::view_must_serve_target
 
 // Engine configurations compared in docs/benchmarks.md.
 void apply_config(const std::string& config, EngineOptions* eo) {
@@ -105,6 +106,7 @@ void apply_config(const std::string& config, EngineOptions* eo) {
   else if (g_score == "projection") eo->candidate_score = EngineOptions::CandidateScore::kProjection;
   else if (!g_score.empty()) throw Error(ErrorCode::kInvalidArgument, "unknown --score '" + g_score + "' (variance, projection)");
   eo->view_candidates = g_views;
+  eo->view_must_serve_target = g_serve;
   if (config == "default") return;
   if (config == "prospective" || config == "prospective-std") {
     // Convergence decided only by the predicted reduction of the best next pose.
@@ -374,6 +376,7 @@ int main(int argc, char** argv) {
     else if (a == "--distortion-tilt") g_distortion_tilt_deg = std::stod(next());
     else if (a == "--score") g_score = next();
     else if (a == "--views") g_views = std::stoi(next());
+    else if (a == "--views-serve-target") g_serve = true;
     else if (a == "--csv") o.csv = next();
     else if (a == "--figure3") o.figure3 = next();
     else if (a == "--figure3-cameras") o.figure3_cameras = std::stoi(next());

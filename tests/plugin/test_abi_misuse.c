@@ -393,6 +393,7 @@ static void test_session_arguments(posecal_context* ctx) {
   EXPECT_MESSAGE("view_candidates");
   EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"view_candidates\":5000}", &s));
   EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"view_candidates\":2.5}", &s));
+  EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"view_must_serve_target\":\"yes\"}", &s));
   EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"target\":\"charuco:1x1\"}", &s));
   EXPECT_INVALID(
       posecal_session_open(ctx, "sim://?operator=robot", "{\"operator\":\"person\"}", &s));

@@ -23,6 +23,7 @@ struct Case {
   int seeds;
   int checked_params = 9;  // parameters held to the 5-sigma honesty check
   int view_candidates = 0;
+  bool view_must_serve_target = false;
   EngineOptions::ConvergenceMeasure measure = EngineOptions::ConvergenceMeasure::kVariance;
 };
 
@@ -55,6 +56,7 @@ Run run_one(const Case& c, int seed, OperatorKind op) {
   EngineOptions eo;
   eo.robot = op == OperatorKind::kRobot;
   eo.view_candidates = c.view_candidates;
+  eo.view_must_serve_target = c.view_must_serve_target;
   eo.convergence_measure = c.measure;
   eo.target_timeout_frames = (so.op.move_frames + so.op.hold_frames) * so.op.max_tries + 1;
   CalibrationSession s(make_sim_camera(so), eo);
@@ -125,9 +127,15 @@ TEST(ClosedLoop, LongFocalLowDistortionCamera) {
 }
 
 TEST(ClosedLoop, CamerasAroundTheC525WithViewCandidatesAndTheStdTest) {
-  // The fewest-keyframes configuration of docs/benchmarks.md: 300 generic views, std ratio test.
+  // The fewest-keyframes configuration of docs/benchmarks.md: 300 generic views, std ratio test;
+  // and the same with views that must serve the targeted parameter.
   Case c{"c525-views-std", c525_reference_model(), 4};
   c.view_candidates = 300;
   c.measure = EngineOptions::ConvergenceMeasure::kStd;
   run_case(c);
+  Case serve{"c525-views-serving-std", c525_reference_model(), 2};
+  serve.view_candidates = 300;
+  serve.view_must_serve_target = true;
+  serve.measure = EngineOptions::ConvergenceMeasure::kStd;
+  run_case(serve);
 }

@@ -416,9 +416,10 @@ TEST(Engine, FirstRefinementTargetIsTheBestScoredCandidate) {
   }
 }
 
-// With view_candidates, a generic view replaces the rule's pose only when it reduces the targeted
-// parameter's variance at least as much as the rule's pick and leaves a lower expected projection
-// error; it shows the whole board within the generator's margin, tilted at most 40 degrees.
+// With view_candidates and view_must_serve_target, a generic view replaces the rule's pose only
+// when it reduces the targeted parameter's variance at least as much as the rule's pick and leaves
+// a lower expected projection error; it shows the whole board within the generator's margin,
+// tilted at most 40 degrees.
 TEST(Engine, ViewCandidateWinsOnlyWhenItServesTheTarget) {
   // The distortion is held fixed so that the first refinement target is a pinhole parameter (with
   // distortion free, MaxIOD picks a distortion coefficient first, whose small, far rule boards a
@@ -426,6 +427,7 @@ TEST(Engine, ViewCandidateWinsOnlyWhenItServesTheTarget) {
   {
     EngineOptions eo;
     eo.view_candidates = 300;
+    eo.view_must_serve_target = true;
     eo.calibration.fixed = {"k1", "k2", "p1", "p2", "k3"};
     std::string param;
     std::unique_ptr<CalibrationSession> session = robot_session_at_first_refinement(eo, &param);
@@ -462,21 +464,26 @@ TEST(Engine, ViewCandidateWinsOnlyWhenItServesTheTarget) {
   }
 }
 
-TEST(Engine, ChooseCandidateLetsAViewWinOnlyIfItServesTheTarget) {
+TEST(Engine, ChooseCandidateFreeOrServingTheTarget) {
   // Rule candidates 0..2 (the best-scored is 1, leaving the target's variance at 2.0), then views.
   const std::vector<double> rule_score = {5, 3, 4}, rule_var = {1.0, 2.0, 0.5};
-  auto choose = [&](std::vector<double> view_score, std::vector<double> view_var) {
+  auto choose = [&](std::vector<double> view_score, std::vector<double> view_var, bool serve = true) {
     std::vector<double> s = rule_score, v = rule_var;
     s.insert(s.end(), view_score.begin(), view_score.end());
     v.insert(v.end(), view_var.begin(), view_var.end());
-    return choose_candidate(s, v, rule_score.size());
+    return choose_candidate(s, v, rule_score.size(), serve);
   };
   EXPECT_EQ(choose({}, {}), 1u);                       // the rule pick, by score alone
   EXPECT_EQ(choose({1.0}, {3.0}), 1u);                 // better score, but worse for the target
   EXPECT_EQ(choose({1.0, 2.0}, {3.0, 2.0}), 4u);       // the best view that serves the target
   EXPECT_EQ(choose({2.0, 1.5}, {1.9, 0.1}), 4u);       // among serving views, the best score
   EXPECT_EQ(choose({3.0}, {0.1}), 1u);                 // a tie in score keeps the rule pick
-  EXPECT_THROW(choose_candidate({1, 2}, {1}, 1), Error);
-  EXPECT_THROW(choose_candidate({1, 2}, {1, 2}, 0), Error);
-  EXPECT_THROW(choose_candidate({1, 2}, {1, 2}, 3), Error);
+  // Free choice (the default): the best score, whatever it does for the target.
+  EXPECT_EQ(choose({}, {}, false), 1u);
+  EXPECT_EQ(choose({1.0}, {3.0}, false), 3u);
+  EXPECT_EQ(choose({1.0, 2.0}, {3.0, 2.0}, false), 3u);
+  EXPECT_EQ(choose({3.0, 3.0}, {9.0, 0.1}, false), 1u);  // ties keep the earlier candidate
+  EXPECT_THROW(choose_candidate({1, 2}, {1}, 1, true), Error);
+  EXPECT_THROW(choose_candidate({1, 2}, {1, 2}, 0, false), Error);
+  EXPECT_THROW(choose_candidate({1, 2}, {1, 2}, 3, true), Error);
 }

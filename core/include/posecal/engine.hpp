@@ -67,10 +67,13 @@ struct EngineOptions {
   // paper's pose families only): this many random views with the whole board in view (tilt up to
   // 40 degrees about any in-plane axis, 40-80% of the image width, anywhere in the image, the
   // pose generator's border margin), drawn from the current estimate with a seed fixed by the
-  // keyframe count. A view competes only if it would reduce the targeted (MaxIOD) parameter's
-  // variance at least as much as the best rule candidate does; among those the best score wins
-  // (docs/pose-selection.md, "Generic view candidates").
+  // keyframe count. The best score wins, view or rule candidate (docs/pose-selection.md,
+  // "Generic view candidates").
   int view_candidates = 0;
+  // With view candidates: a view may win only if it would also reduce the targeted (MaxIOD)
+  // parameter's variance at least as much as the best rule candidate does. Off by default:
+  // measured, the free choice needs fewer keyframes for the same accuracy (docs/benchmarks.md).
+  bool view_must_serve_target = false;
   // Ratio test measure: kVariance = 1 - sigma'^2 / sigma^2 (paper §4.1); kStd = 1 - sigma' /
   // sigma (the reference implementation; at 10% it equals a 19% variance reduction).
   enum class ConvergenceMeasure { kVariance, kStd } convergence_measure = ConvergenceMeasure::kVariance;
@@ -138,10 +141,12 @@ struct ParameterStatus {
 
 // Which candidate pose to capture, given each candidate's score (lower is better) and the
 // targeted parameter's predicted variance after it: the best-scored of the rule candidates
-// [0, n_rule), replaced by a generic view [n_rule, size) only if the view scores lower and leaves
-// the targeted parameter's variance no higher than the rule pick does (EngineOptions::
-// view_candidates). Throws Error(kInvalidArgument) on inconsistent sizes or no rule candidate.
-size_t choose_candidate(const std::vector<double>& score, const std::vector<double>& target_var, size_t n_rule);
+// [0, n_rule), replaced by a generic view [n_rule, size) that scores lower — with
+// `must_serve_target`, only by a view that also leaves the targeted parameter's variance no higher
+// than the rule pick does (EngineOptions::view_candidates, view_must_serve_target). Ties keep the
+// earlier candidate. Throws Error(kInvalidArgument) on inconsistent sizes or no rule candidate.
+size_t choose_candidate(const std::vector<double>& score, const std::vector<double>& target_var, size_t n_rule,
+                        bool must_serve_target);
 
 // The ratio test (paper §4.1) after a keyframe captured for parameter `targeted`: returns the
 // parameters of the targeted parameter's group that converge, given each parameter's variance
