@@ -282,6 +282,19 @@ struct CalibrationEngine::Impl {
     // matrices are computed once per choice.
     const bool scoring = opt.pose_candidates > 1 || opt.prospective_convergence;
     if (scoring) prepare_scoring();
+    const bool by_projection = opt.candidate_score == EngineOptions::CandidateScore::kProjection;
+    // Generic views do not depend on the targeted parameter: drawn and predicted once per choice.
+    std::vector<TargetPose> views;
+    std::vector<double> view_projection;
+    std::vector<Eigen::VectorXd> view_variances;
+    if (scoring && opt.view_candidates > 0) {
+      views = view_candidates();
+      for (const TargetPose& v : views) {
+        const Eigen::MatrixXd cov = predicted_covariance(v);
+        view_variances.push_back(cov.diagonal());
+        view_projection.push_back(by_projection ? (gram * cov).trace() : 0.0);
+      }
+    }
     while (true) {
       // MaxIOD (paper §4.1): the parameter with the highest index of dispersion among those not
       // converged.
@@ -295,24 +308,24 @@ struct CalibrationEngine::Impl {
         }
       }
       if (best < 0) return;
-      std::vector<TargetPose> cands = posegen.candidates(best, estimate, opt.pose_candidates);
+      const std::vector<TargetPose> cands = posegen.candidates(best, estimate, opt.pose_candidates);
       if (cands.empty()) throw Error(ErrorCode::kInternal, "pose generation produced no candidate");
       const size_t n_rule = cands.size();
-      if (scoring && opt.view_candidates > 0) {
-        std::vector<TargetPose> views = view_candidates();
-        cands.insert(cands.end(), std::make_move_iterator(views.begin()), std::make_move_iterator(views.end()));
-      }
       size_t pick = 0;
       // Predicted variance of `best` after the candidate that will be captured: the prospective
       // test asks whether the keyframe the engine is about to request would help it.
       double pick_var = std::numeric_limits<double>::infinity();
       if (scoring) {
         const int k = free_position(best);
-        std::vector<double> score(cands.size()), var(cands.size());
-        for (size_t i = 0; i < cands.size(); ++i) {
-          const Eigen::MatrixXd cov = predicted_covariance(cands[i]);
-          var[i] = k < 0 ? 0.0 : cov(k, k);
-          score[i] = opt.candidate_score == EngineOptions::CandidateScore::kProjection ? (gram * cov).trace() : var[i];
+        std::vector<double> score, var;
+        for (const TargetPose& c : cands) {
+          const Eigen::MatrixXd cov = predicted_covariance(c);
+          var.push_back(k < 0 ? 0.0 : cov(k, k));
+          score.push_back(by_projection ? (gram * cov).trace() : var.back());
+        }
+        for (size_t i = 0; i < views.size(); ++i) {
+          var.push_back(k < 0 ? 0.0 : view_variances[i](k));
+          score.push_back(by_projection ? view_projection[i] : var.back());
         }
         pick = choose_candidate(score, var, n_rule, opt.view_must_serve_target);
         pick_var = var[pick];
@@ -327,8 +340,12 @@ struct CalibrationEngine::Impl {
           continue;
         }
       }
-      if (cands[pick].kind != "view") posegen.commit(cands[pick]);
-      set_target(cands[pick], best);
+      if (pick < n_rule) {
+        posegen.commit(cands[pick]);
+        set_target(cands[pick], best);
+      } else {
+        set_target(views[pick - n_rule], best);  // a view uses no sequence element or region
+      }
       return;
     }
   }
