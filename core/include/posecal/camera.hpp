@@ -135,7 +135,7 @@ struct GuidanceInfo {
   Pose T_cam_board_target;     // target board pose in the camera frame
   CameraModel estimate;        // current intrinsics, used to draw the overlay
   uint64_t target_serial = 0;  // increments with every new target
-  std::string target_kind;     // "init-tilted", "init-fronto-parallel", "pinhole", "distortion"
+  std::string target_kind;     // "init-tilted", "init-fronto-parallel", "pinhole", "distortion", "view" (EngineOptions::view_candidates)
   int keyframes = 0;           // keyframes captured so far
   bool finished = false;       // converged or failed: nothing more to show
 };

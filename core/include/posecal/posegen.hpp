@@ -46,7 +46,7 @@ struct PoseGenOptions {
 
 struct TargetPose {
   Pose T_cam_board;
-  std::string kind;     // "init-tilted", "init-fronto-parallel", "pinhole", "distortion"
+  std::string kind;     // "init-tilted", "init-fronto-parallel", "pinhole", "distortion", "view" (EngineOptions::view_candidates)
   std::string note;     // what was adjusted (moved back to stay in view, fallback, ...)
   double tilt_deg = 0;  // C_K poses: tilt angle used
   int axis = -1;        // C_K poses: 0 tilt about x, 1 about y
