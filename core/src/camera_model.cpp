@@ -56,7 +56,7 @@ const LensModelInfo& info(LensModel model) {
 }
 
 // Distortion of a normalised point and its 2x2 Jacobian d(xd, yd)/d(x, y).
-void distort_with_jacobian(LensModel model, const double* dist, double x, double y, double* xd,
+[[gnu::always_inline]] inline void distort_with_jacobian(LensModel model, const double* dist, double x, double y, double* xd,
                            double* yd, Eigen::Matrix2d* J) {
   if (model == LensModel::kOpenCV5) {
     const double k1 = dist[0], k2 = dist[1], p1 = dist[2], p2 = dist[3], k3 = dist[4];
@@ -191,17 +191,50 @@ bool CameraModel::project(const Eigen::Vector3d& p_cam, Eigen::Vector2d* uv,
 
 namespace {
 
+// A radius (normalised coordinates) inside which the distortion's Jacobian is positive
+// definite, so it cannot fold: 0 if none is known. For the OpenCV model J = A + T with
+// A = radial I + 2 radial' v v^T (v = (x, y), radial' = d radial / d r^2; eigenvalues radial and
+// radial + 2 r^2 radial') and the symmetric tangential part T, |T| <= c r (Frobenius norm), so by
+// Weyl's inequality J > 0 wherever min(radial, radial + 2 r^2 radial') > c r. That holds on
+// [0, r] for the r found by stepping out with a Lipschitz bound on both polynomials.
+double fold_free_radius_of(LensModel model, const double* dist) {
+  if (model != LensModel::kOpenCV5) return 0.0;
+  const double k1 = dist[0], k2 = dist[1], p1 = std::abs(dist[2]), p2 = std::abs(dist[3]), k3 = dist[4];
+  const double t11 = 2 * p1 + 6 * p2, t12 = 2 * p1 + 2 * p2, t22 = 6 * p1 + 2 * p2;
+  const double c = std::sqrt(t11 * t11 + 2 * t12 * t12 + t22 * t22);
+  auto lower = [&](double r) {  // min of the two eigenvalue bounds at r
+    const double r2 = r * r, r4 = r2 * r2, r6 = r4 * r2;
+    return std::min(1 + k1 * r2 + k2 * r4 + k3 * r6, 1 + 3 * k1 * r2 + 5 * k2 * r4 + 7 * k3 * r6) - c * r;
+  };
+  auto lipschitz = [&](double r) {  // bound on |d lower / dr| over [0, r]
+    const double r3 = r * r * r, r5 = r3 * r * r;
+    return 6 * std::abs(k1) * r + 20 * std::abs(k2) * r3 + 42 * std::abs(k3) * r5 + c;
+  };
+  // Adaptive steps: lower > 0 on [r, r + h] if h < lower(r) / L, L bounding the slope there.
+  constexpr double kMaxStep = 0.05, kMinStep = 1e-4, kMax = 4.0;
+  double r = 0;
+  while (r < kMax) {
+    const double h = std::min(kMaxStep, 0.5 * lower(r) / lipschitz(r + kMaxStep));
+    if (!(h >= kMinStep)) break;
+    r += h;
+  }
+  return std::min(r, kMax);
+}
+
 // Solves distort(x) = target by damped Newton from `x`. Rejects solutions where the
-// distortion folds over (det J <= 0): there the model has no physical preimage.
+// distortion folds over (det J <= 0): there the model has no physical preimage. Inside
+// `fold_free_r` (fold_free_radius_of()) the check along the ray is known to pass and is skipped.
 bool invert_distortion(LensModel model, const double* dist, double tx, double ty, double* x,
-                       double* y) {
+                       double* y, double fold_free_r = 0.0) {
   double cx = *x, cy = *y;
   Eigen::Matrix2d J;
   double xd, yd;
   distort_with_jacobian(model, dist, cx, cy, &xd, &yd, &J);
-  double err = std::hypot(xd - tx, yd - ty);
+  // Squared residuals (no hypot: this runs for every unprojected pixel).
+  auto sq = [](double a, double b) { return a * a + b * b; };
+  double err = sq(xd - tx, yd - ty);
   for (int it = 0; it < 40; ++it) {
-    if (err < 1e-12) break;
+    if (err < 1e-24) break;
     const double det = J.determinant();
     if (!(std::abs(det) > 1e-12)) return false;
     const Eigen::Vector2d step = J.inverse() * Eigen::Vector2d(xd - tx, yd - ty);
@@ -212,7 +245,7 @@ bool invert_distortion(LensModel model, const double* dist, double tx, double ty
       double nxd, nyd;
       Eigen::Matrix2d nJ;
       distort_with_jacobian(model, dist, nx, ny, &nxd, &nyd, &nJ);
-      const double nerr = std::hypot(nxd - tx, nyd - ty);
+      const double nerr = sq(nxd - tx, nyd - ty);
       if (nerr < err) {
         cx = nx;
         cy = ny;
@@ -226,15 +259,17 @@ bool invert_distortion(LensModel model, const double* dist, double tx, double ty
     }
     if (!improved) break;
   }
-  if (!(err < 1e-9) || !(J.determinant() > 0)) return false;
+  if (!(err < 1e-18) || !(J.determinant() > 0)) return false;
   // The physical preimage lies in the region around the optical axis where the distortion is
   // one-to-one: the Jacobian must stay positive along the whole ray from the centre. A solution
   // beyond a fold (e.g. k1 < 0 alone, past r = 1/sqrt(3|k1|)) can also have det J > 0.
-  for (double f : {0.25, 0.5, 0.75}) {
-    double ux, uy;
-    Eigen::Matrix2d Jf;
-    distort_with_jacobian(model, dist, f * cx, f * cy, &ux, &uy, &Jf);
-    if (!(Jf.determinant() > 0)) return false;
+  if (!(cx * cx + cy * cy < fold_free_r * fold_free_r)) {
+    for (double f : {0.25, 0.5, 0.75}) {
+      double ux, uy;
+      Eigen::Matrix2d Jf;
+      distort_with_jacobian(model, dist, f * cx, f * cy, &ux, &uy, &Jf);
+      if (!(Jf.determinant() > 0)) return false;
+    }
   }
   if (cx * tx + cy * ty < 0) return false;
   *x = cx;
@@ -244,11 +279,15 @@ bool invert_distortion(LensModel model, const double* dist, double tx, double ty
 
 }  // namespace
 
-bool CameraModel::unproject(const Eigen::Vector2d& uv, Eigen::Vector2d* xn) const {
+double CameraModel::fold_free_radius() const {
+  return fold_free_radius_of(model_, params_.data() + kNumPinholeParams);
+}
+
+bool CameraModel::unproject(const Eigen::Vector2d& uv, Eigen::Vector2d* xn, double fold_free_r) const {
   const double tx = (uv.x() - cx()) / fx();
   const double ty = (uv.y() - cy()) / fy();
   double x = tx, y = ty;
-  if (!invert_distortion(model_, params_.data() + kNumPinholeParams, tx, ty, &x, &y)) return false;
+  if (!invert_distortion(model_, params_.data() + kNumPinholeParams, tx, ty, &x, &y, fold_free_r)) return false;
   *xn << x, y;
   return true;
 }
@@ -259,6 +298,7 @@ cv::Mat CameraModel::ray_map(int supersample) const {
   cv::Mat map(H, W, CV_32FC2);
   const double* dist = params_.data() + kNumPinholeParams;
   const float nan = std::numeric_limits<float>::quiet_NaN();
+  const double fold_free_r = fold_free_radius_of(model_, dist);
   for (int i = 0; i < H; ++i) {
     auto* row = map.ptr<cv::Vec2f>(i);
     const double v = (i + 0.5) / supersample - 0.5;
@@ -270,11 +310,11 @@ cv::Mat CameraModel::ray_map(int supersample) const {
       const double u = (j + 0.5) / supersample - 0.5;
       const double tx = (u - cx()) / fx();
       double sx = have_prev ? x : tx, sy = have_prev ? y : ty;
-      bool ok = invert_distortion(model_, dist, tx, ty, &sx, &sy);
+      bool ok = invert_distortion(model_, dist, tx, ty, &sx, &sy, fold_free_r);
       if (!ok && have_prev) {
         sx = tx;
         sy = ty;
-        ok = invert_distortion(model_, dist, tx, ty, &sx, &sy);
+        ok = invert_distortion(model_, dist, tx, ty, &sx, &sy, fold_free_r);
       }
       if (ok) {
         row[j] = cv::Vec2f(static_cast<float>(sx), static_cast<float>(sy));
@@ -295,29 +335,44 @@ cv::Mat CameraModel::distortion_map(int step) const {
   const int rows = (height_ + step - 1) / step, cols = (width_ + step - 1) / step;
   cv::Mat map(rows, cols, CV_32F);
   const double* dist = params_.data() + kNumPinholeParams;
+  const double fold_free_r = fold_free_radius_of(model_, dist);
+  // Row start of the previous row, for the next row's warm start.
+  bool have_above = false;
+  double ax = 0, ay = 0;
   for (int i = 0; i < rows; ++i) {
     const double ty = (i * step - cy()) / fy();
-    // Warm start from the left neighbour (the map is smooth): Newton needs one or two steps.
-    bool have_prev = false;
-    double px = 0, py = 0;
+    // Warm start (the map is smooth): the left neighbours' solutions extrapolated linearly, or the
+    // one left neighbour, or for the first cell the row above's; Newton then needs one or two
+    // steps.
+    int have_prev = 0;
+    double px = 0, py = 0, ppx = 0, ppy = 0;
     for (int j = 0; j < cols; ++j) {
       const double tx = (j * step - cx()) / fx();
-      double x = have_prev ? px : tx, y = have_prev ? py : ty;
-      bool ok = invert_distortion(model_, dist, tx, ty, &x, &y);
-      if (!ok && have_prev) {
+      double x = tx, y = ty;
+      if (have_prev >= 2) {
+        x = 2 * px - ppx, y = 2 * py - ppy;
+      } else if (have_prev == 1) {
+        x = px, y = py;
+      } else if (j == 0 && have_above) {
+        x = ax, y = ay + step / fy();
+      }
+      bool ok = invert_distortion(model_, dist, tx, ty, &x, &y, fold_free_r);
+      if (!ok && (x != tx || y != ty)) {  // warm-started: retry from the pinhole ray
         x = tx;
         y = ty;
-        ok = invert_distortion(model_, dist, tx, ty, &x, &y);
+        ok = invert_distortion(model_, dist, tx, ty, &x, &y, fold_free_r);
       }
+      if (j == 0) have_above = ok, ax = x, ay = y;
       if (!ok) {
         map.at<float>(i, j) = std::numeric_limits<float>::quiet_NaN();
-        have_prev = false;
+        have_prev = 0;
         continue;
       }
-      have_prev = true;
-      px = x;
-      py = y;
-      map.at<float>(i, j) = static_cast<float>(std::hypot(fx() * (x - tx), fy() * (y - ty)));
+      ppx = px, ppy = py;
+      px = x, py = y;
+      ++have_prev;
+      const double ex = fx() * (x - tx), ey = fy() * (y - ty);
+      map.at<float>(i, j) = static_cast<float>(std::sqrt(ex * ex + ey * ey));
     }
   }
   return map;

@@ -267,6 +267,69 @@ TEST(Calibration, ProjectionGramGivesTheExpectedProjectionError) {
   EXPECT_THROW(projection_gram(m, none, 0, 9), Error);
 }
 
+// Weighted points: weight 1 is the unweighted sum, weights scale linearly; corner_quadrature()
+// sums low-order polynomials over the corner grid exactly and stands in for the corners in
+// frame_information() well enough to rank views (the engine checks its shortlist exactly).
+TEST(Calibration, WeightedInformationAndCornerQuadrature) {
+  const CameraModel m = CameraModel::opencv5(1280, 720, 1100, 1080, 650, 350, {-0.3, 0.15, 0.002, -0.001, -0.05});
+  const Target board(TargetSpec{});
+  const std::vector<bool> fixed(9, false);
+  const Pose T = board_pose_at(board, Eigen::Vector3d(0.03, -0.02, 0.45), 0.7, 0.6, 0.4);
+  const std::vector<cv::Point3d>& corners = board.corners();
+  const Eigen::MatrixXd full = frame_information(m, T, corners, fixed);
+  const Eigen::MatrixXd ones = frame_information(m, T, corners, std::vector<double>(corners.size(), 1.0), fixed);
+  const Eigen::MatrixXd twos = frame_information(m, T, corners, std::vector<double>(corners.size(), 2.0), fixed);
+  EXPECT_LT((ones - full).norm(), 1e-9 * full.norm());
+  EXPECT_LT((twos - 2 * full).norm(), 1e-9 * full.norm());
+
+  // Exact sums of x^a y^b over the 8x5 grid: a, b <= 5 with 3 nodes, <= 3 with 2.
+  for (int nodes : {2, 3}) {
+    std::vector<cv::Point3d> q;
+    std::vector<double> w;
+    corner_quadrature(corners, nodes, nodes, &q, &w);
+    ASSERT_EQ(q.size(), static_cast<size_t>(nodes * nodes));
+    for (int a = 0; a <= 2 * nodes - 1; ++a) {
+      for (int b = 0; b <= 2 * nodes - 1; ++b) {
+        double exact = 0, approx = 0;
+        for (const cv::Point3d& c : corners) exact += std::pow(c.x, a) * std::pow(c.y, b);
+        for (size_t i = 0; i < q.size(); ++i) approx += w[i] * std::pow(q[i].x, a) * std::pow(q[i].y, b);
+        EXPECT_NEAR(approx, exact, 1e-9 * std::abs(exact)) << nodes << " nodes, x^" << a << " y^" << b;
+      }
+    }
+    for (double wi : w) EXPECT_GT(wi, 0.0);
+  }
+  // Mixed: 3 nodes along x (8 values), 2 along y (5 values).
+  std::vector<cv::Point3d> q;
+  std::vector<double> w;
+  corner_quadrature(corners, 3, 2, &q, &w);
+  EXPECT_EQ(q.size(), 6u);
+  // Not a full grid (a corner missing), or too few values per axis: the corners themselves.
+  std::vector<cv::Point3d> partial(corners.begin() + 1, corners.end());
+  corner_quadrature(partial, 3, 3, &q, &w);
+  EXPECT_EQ(q.size(), partial.size());
+  EXPECT_EQ(w, std::vector<double>(partial.size(), 1.0));
+  const std::vector<cv::Point3d> tiny = {{0, 0, 0}, {1, 0, 0}, {0, 1, 0}, {1, 1, 0}};
+  corner_quadrature(tiny, 2, 2, &q, &w);
+  EXPECT_EQ(q.size(), 4u);
+  EXPECT_EQ(w, std::vector<double>(4, 1.0));
+  EXPECT_THROW(corner_quadrature(corners, 4, 3, &q, &w), Error);
+  EXPECT_THROW(corner_quadrature(corners, 3, 1, &q, &w), Error);
+
+  // The 3x3 quadrature's predicted standard deviations after this strongly tilted view, on top of
+  // a weak prior, are within 30% of the exact ones (k3, the highest order, is the worst: 26%).
+  corner_quadrature(corners, 3, 3, &q, &w);
+  const Eigen::MatrixXd prior = 1e-2 * full.diagonal().asDiagonal().toDenseMatrix();
+  const Eigen::MatrixXd ce = (prior + full).inverse(), ca = (prior + frame_information(m, T, q, w, fixed)).inverse();
+  for (int i = 0; i < 9; ++i) EXPECT_NEAR(std::sqrt(ca(i, i) / ce(i, i)), 1.0, 0.3) << "parameter " << i;
+
+  EXPECT_THROW(frame_information(m, T, corners, std::vector<double>(3, 1.0), fixed), Error);
+  std::vector<double> bad(corners.size(), 1.0);
+  bad[5] = -1;
+  EXPECT_THROW(frame_information(m, T, corners, bad, fixed), Error);
+  bad[5] = std::nan("");
+  EXPECT_THROW(frame_information(m, T, corners, bad, fixed), Error);
+}
+
 // frame_information() against an independent computation: central differences of the projection
 // in the rotation-vector parametrisation, then the Schur complement onto the free intrinsics.
 TEST(Calibration, FrameInformationIsTheSchurComplementOfOneView) {

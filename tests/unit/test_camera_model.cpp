@@ -5,6 +5,8 @@
 #include <opencv2/calib3d.hpp>
 #include <random>
 
+#include <Eigen/LU>
+
 #include "posecal/camera_model.hpp"
 #include "posecal/error.hpp"
 
@@ -102,6 +104,82 @@ TEST(CameraModel, UnprojectRejectsPixelsWithoutPreimage) {
   const cv::Mat dm = m.distortion_map(50);
   EXPECT_TRUE(std::isnan(dm.at<float>(0, 0)));  // the corner has no preimage
   EXPECT_FALSE(std::isnan(dm.at<float>(10, 10)));
+}
+
+// fold_free_radius() is a bound: inside it the distortion's Jacobian (central differences of
+// project()) stays positive definite, in every direction; and unproject() with it gives the
+// same results as without it, and the warm-started distortion map the same as unproject() per
+// cell wherever that finds a preimage, also for models that fold inside the image.
+TEST(CameraModel, FoldFreeRadiusIsABoundAndChangesNoResult) {
+  const std::vector<CameraModel> models = {
+      c525_reference_model(),
+      strong_model(),
+      CameraModel::opencv5(1000, 1000, 500, 500, 499.5, 499.5, {-0.6, 0, 0, 0, 0}),      // folds at r 0.745
+      CameraModel::opencv5(1280, 720, 600, 600, 640, 360, {0.3, -0.9, 0.02, -0.03, 0.4}),  // folds, tangential
+      CameraModel::opencv5(640, 480, 500, 500, 320, 240, {0, 0, 0, 0, 0}),
+  };
+  for (size_t mi = 0; mi < models.size(); ++mi) {
+    const CameraModel& m = models[mi];
+    const double r_free = m.fold_free_radius();
+    EXPECT_GE(r_free, 0.0);
+    // Positive definite Jacobian of the normalised distortion inside r_free.
+    auto distort = [&](double x, double y) {
+      Eigen::Vector2d uv;
+      EXPECT_TRUE(m.project(Eigen::Vector3d(x, y, 1.0), &uv));
+      return Eigen::Vector2d((uv.x() - m.cx()) / m.fx(), (uv.y() - m.cy()) / m.fy());
+    };
+    for (int a = 0; a < 64; ++a) {
+      for (double f : {0.2, 0.5, 0.8, 0.99}) {
+        const double r = f * std::min(r_free, 3.0), th = 2 * M_PI * a / 64;
+        const double x = r * std::cos(th), y = r * std::sin(th), h = 1e-6;
+        Eigen::Matrix2d J;
+        J.col(0) = (distort(x + h, y) - distort(x - h, y)) / (2 * h);
+        J.col(1) = (distort(x, y + h) - distort(x, y - h)) / (2 * h);
+        const Eigen::Matrix2d S = 0.5 * (J + J.transpose());
+        EXPECT_GT(S.determinant(), 0.0) << "model " << mi << " r " << r;
+        EXPECT_GT(S.trace(), 0.0) << "model " << mi << " r " << r;
+      }
+    }
+    // The same unprojections with and without the shortcut, over the whole image.
+    int inside = 0, folded = 0;
+    for (int v = 0; v < m.height(); v += 23) {
+      for (int u = 0; u < m.width(); u += 23) {
+        Eigen::Vector2d a, b;
+        const bool ok_a = m.unproject(Eigen::Vector2d(u, v), &a);
+        const bool ok_b = m.unproject(Eigen::Vector2d(u, v), &b, r_free);
+        ASSERT_EQ(ok_a, ok_b) << "model " << mi << " pixel " << u << "," << v;
+        if (ok_a) {
+          EXPECT_EQ(a, b);
+          inside += a.norm() < r_free;
+        } else {
+          ++folded;
+        }
+      }
+    }
+    if (mi == 0) {
+      EXPECT_GT(inside, 0);  // the shortcut is taken for the C525
+    }
+    if (mi == 2) {
+      EXPECT_GT(folded, 0);  // and this model has pixels without preimage
+    }
+    // The warm-started distortion map against unproject() per cell.
+    const int step = 20;
+    const cv::Mat dm = m.distortion_map(step);
+    for (int i = 0; i < dm.rows; ++i) {
+      for (int j = 0; j < dm.cols; ++j) {
+        Eigen::Vector2d xn;
+        const Eigen::Vector2d px(j * step, i * step);
+        const bool ok = m.unproject(px, &xn);
+        const float d = dm.at<float>(i, j);
+        // Where Newton from the pinhole ray fails (near a fold) the warm start may still find
+        // the preimage; where it succeeds, the map has the same value.
+        if (!ok) continue;
+        ASSERT_FALSE(std::isnan(d)) << "model " << mi << " cell " << i << "," << j;
+        const double ex = m.fx() * (xn.x() - (px.x() - m.cx()) / m.fx()), ey = m.fy() * (xn.y() - (px.y() - m.cy()) / m.fy());
+        EXPECT_NEAR(d, std::sqrt(ex * ex + ey * ey), 1e-3 + 1e-5 * d);
+      }
+    }
+  }
 }
 
 TEST(CameraModel, DistortionMap) {

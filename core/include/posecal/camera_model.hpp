@@ -112,7 +112,13 @@ class CameraModel {
   // Pixel -> normalised ray (x, y) with ray = (x, y, 1). Newton iteration on the distortion;
   // returns false where the model has no preimage (outside the model's valid region) or the
   // iteration does not converge.
-  bool unproject(const Eigen::Vector2d& uv, Eigen::Vector2d* xn) const;
+  bool unproject(const Eigen::Vector2d& uv, Eigen::Vector2d* xn) const { return unproject(uv, xn, 0.0); }
+  // The same, faster for many pixels: inside fold_free_r (from fold_free_radius() of this model)
+  // the check that the distortion does not fold along the ray is skipped; the result is the same.
+  bool unproject(const Eigen::Vector2d& uv, Eigen::Vector2d* xn, double fold_free_r) const;
+  // A radius in normalised coordinates inside which the distortion cannot fold (its Jacobian is
+  // positive definite); 0 if none is known. A bound, not the exact fold radius.
+  double fold_free_radius() const;
   // Per-pixel distortion magnitude in pixels: |p - K * unproject(p)| sampled at every `step`
   // pixels (cell (i, j) is pixel (j * step, i * step)). CV_32F; NaN where unproject fails.
   cv::Mat distortion_map(int step = 1) const;
