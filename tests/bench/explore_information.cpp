@@ -14,7 +14,7 @@
 // win or required to serve the targeted parameter (the engine's rule).
 //
 //   build/bin/explore_information [--cameras N] [--pool P] [--draws D] [--max-tilt DEG]
-//       [--width MIN MAX] [--verbose]
+//       [--width MIN MAX] [--sampler random|random-engine-margin|sampler] [--screening] [--verbose]
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
@@ -29,6 +29,7 @@
 #include "posecal/engine.hpp"
 #include "posecal/posegen.hpp"
 #include "posecal/simulation.hpp"
+#include "posecal/view_candidates.hpp"
 #include "posecal/views.hpp"
 
 using namespace posecal;
@@ -36,6 +37,10 @@ using namespace posecal;
 namespace {
 
 constexpr int kMaxK = 20;
+// Quadratures compared by --screening (nodes along the board's x and y axes).
+constexpr int kRules = 4;
+constexpr int kRuleNodes[kRules][2] = {{2, 2}, {3, 2}, {2, 3}, {3, 3}};
+constexpr int kShortlists[4] = {4, 8, 16, 32};
 
 double median(std::vector<double> v) {
   if (v.empty()) return std::nan("");
@@ -51,6 +56,17 @@ Eigen::MatrixXd inverse(const Eigen::MatrixXd& info) {
 }
 
 double eps(const Eigen::MatrixXd& G, const Eigen::MatrixXd& info) { return std::sqrt((G * inverse(info)).trace()); }
+
+// The pool entry whose information, added to `info`, leaves the lowest expected eps_gt.
+size_t best_addition(const Eigen::MatrixXd& G, const Eigen::MatrixXd& info, const std::vector<Eigen::MatrixXd>& pool_info) {
+  size_t pick = 0;
+  double pick_score = 1e300;
+  for (size_t c = 0; c < pool_info.size(); ++c) {
+    const double s = eps(G, info + pool_info[c]);
+    if (s < pick_score) pick_score = s, pick = c;
+  }
+  return pick;
+}
 
 struct Pick {
   double tilt_deg = 0, width_frac = 0, cx_frac = 0, cy_frac = 0;
@@ -146,7 +162,10 @@ Outcome simulate(const CameraModel& truth, const Target& board, const Eigen::Mat
 int main(int argc, char** argv) {
   int cameras = 24, pool_size = 600, draws = 10;
   double max_tilt = 40;  // the engine's view sampling (EngineOptions::view_candidates)
-  bool verbose = false;
+  bool verbose = false, screening = false;
+  // random: random_board_views with its default 4 px margin; random-engine-margin: the same with
+  // the engine's 2% margin; sampler: the engine's ViewSampler.
+  std::string sampler_kind = "random";
   double min_width = 0.4, max_width = 0.8;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
@@ -162,6 +181,8 @@ int main(int argc, char** argv) {
     else if (a == "--draws") draws = std::stoi(next());
     else if (a == "--max-tilt") max_tilt = std::stod(next());
     else if (a == "--verbose") verbose = true;
+    else if (a == "--screening") screening = true;
+    else if (a == "--sampler") sampler_kind = next();
     else if (a == "--width") min_width = std::stod(next()), max_width = std::stod(next());
     else {
       std::fprintf(stderr, "unknown option %s\n", a.c_str());
@@ -173,6 +194,8 @@ int main(int argc, char** argv) {
   std::vector<std::vector<double>> r_rules(kMaxK + 1), r_greedy(kMaxK + 1), r_random(kMaxK + 1);
   std::vector<Pick> greedy_picks;
   std::map<int, std::vector<double>> sim_kf, sim_ratio;
+  int screen_cases = 0, screen_hit[kRules][4] = {};
+  std::vector<double> screen_loss[kRules][4];
   for (int cam = 1; cam <= cameras; ++cam) {
     const CameraModel truth = sample_camera(c525_reference_model(), 0.1, cam);
     const Eigen::MatrixXd G = projection_gram(truth, fixed, 40, 23);
@@ -223,7 +246,26 @@ int main(int argc, char** argv) {
     vsp.max_tilt_deg = max_tilt;
     vsp.min_width_fraction = min_width;
     vsp.max_width_fraction = max_width;
-    std::vector<Pose> pool = random_board_views(static_cast<uint64_t>(cam) * 104729, pool_size, truth, board, vsp);
+    std::vector<Pose> pool;
+    if (sampler_kind == "random" || sampler_kind == "random-engine-margin") {
+      if (sampler_kind != "random") vsp.margin_px = 0.02 * std::max(truth.width(), truth.height());
+      pool = random_board_views(static_cast<uint64_t>(cam) * 104729, pool_size, truth, board, vsp);
+    } else if (sampler_kind == "sampler") {
+      // The engine's ViewSampler under the truth, with the engine's margin; views that fail the
+      // dense check are dropped.
+      ViewSampling vse = vsp;
+      vse.margin_px = 0.02 * std::max(truth.width(), truth.height());
+      const ViewSampler sampler(truth, board, vse);
+      std::mt19937_64 rng(static_cast<uint64_t>(cam) * 104729);
+      while (static_cast<int>(pool.size()) < pool_size) {
+        const std::optional<Pose> p = sampler.draw(rng);
+        if (!p) break;
+        if (board_fully_visible(truth, board, *p, vse.margin_px)) pool.push_back(*p);
+      }
+    } else {
+      std::fprintf(stderr, "unknown sampler %s (random, random-engine-margin, sampler)\n", sampler_kind.c_str());
+      return 2;
+    }
     std::vector<Eigen::MatrixXd> pool_info;
     for (const Pose& p : pool) pool_info.push_back(info_of(p));
     const std::vector<Pose> pool_all = pool;
@@ -232,12 +274,7 @@ int main(int argc, char** argv) {
     std::vector<double> greedy_k(kMaxK + 1, 0.0);
     greedy_k[2] = eps(G, info);
     for (int k = 3; k <= kMaxK; ++k) {
-      size_t pick = 0;
-      double pick_score = 1e300;
-      for (size_t c = 0; c < pool.size(); ++c) {
-        const double s = eps(G, info + pool_info[c]);
-        if (s < pick_score) pick_score = s, pick = c;
-      }
+      const size_t pick = best_addition(G, info, pool_info);
       info += pool_info[pick];
       greedy_k[k] = eps(G, info);
       if (k <= 9) greedy_picks.push_back(describe(truth, board, pool[pick]));
@@ -253,7 +290,51 @@ int main(int argc, char** argv) {
       pool.erase(pool.begin() + static_cast<long>(pick));
       pool_info.erase(pool_info.begin() + static_cast<long>(pick));
     }
+    if (screening) {
+      // Along the greedy sequence: draw 300 views with the engine's ViewSampler, score them exactly
+      // and on corner_quadrature()'s points, and see whether the exact best is shortlisted.
+      std::vector<cv::Point3d> qp[kRules];
+      std::vector<double> qw[kRules];
+      for (int q = 0; q < kRules; ++q) corner_quadrature(board.corners(), kRuleNodes[q][0], kRuleNodes[q][1], &qp[q], &qw[q]);
+      ViewSampling vse = vsp;
+      vse.margin_px = 0.02 * std::max(truth.width(), truth.height());
+      const ViewSampler sampler(truth, board, vse);
+      Eigen::MatrixXd st = info_init;
+      std::vector<Pose> seq_pool = pool_all;
+      std::vector<Eigen::MatrixXd> seq_info = pool_info_all;
+      for (int k = 3; k <= 9; ++k) {
+        std::mt19937_64 rng(static_cast<uint64_t>(cam) * 31 + k);
+        std::vector<double> exact, approx[kRules];
+        for (int v = 0; v < 300; ++v) {
+          const std::optional<Pose> p = sampler.draw(rng);
+          if (!p || !board_fully_visible(truth, board, *p, vse.margin_px)) continue;
+          exact.push_back(eps(G, st + info_of(*p)));
+          for (int q = 0; q < kRules; ++q) approx[q].push_back(eps(G, st + frame_information(truth, *p, qp[q], qw[q], fixed)));
+        }
+        const size_t best = std::min_element(exact.begin(), exact.end()) - exact.begin();
+        for (int q = 0; q < kRules; ++q) {
+          std::vector<size_t> order(exact.size());
+          for (size_t i = 0; i < order.size(); ++i) order[i] = i;
+          std::sort(order.begin(), order.end(), [&](size_t a, size_t b) { return approx[q][a] < approx[q][b]; });
+          for (int ki = 0; ki < 4; ++ki) {
+            const size_t K = std::min(order.size(), static_cast<size_t>(kShortlists[ki]));
+            double got = 1e300;
+            bool hit = false;
+            for (size_t i = 0; i < K; ++i) got = std::min(got, exact[order[i]]), hit |= order[i] == best;
+            screen_hit[q][ki] += hit;
+            screen_loss[q][ki].push_back(got / exact[best] - 1);
+          }
+        }
+        ++screen_cases;
+        // Continue along the greedy sequence.
+        const size_t pick = best_addition(G, st, seq_info);
+        st += seq_info[pick];
+        seq_pool.erase(seq_pool.begin() + static_cast<long>(pick));
+        seq_info.erase(seq_info.begin() + static_cast<long>(pick));
+      }
+    }
     for (int np : {0, 100, 300, 600}) {
+      if (screening) break;
       for (auto m : {EngineOptions::ConvergenceMeasure::kVariance, EngineOptions::ConvergenceMeasure::kStd})
       for (bool serve : {false, true}) {
         if (np == 0 && serve) continue;
@@ -270,6 +351,15 @@ int main(int argc, char** argv) {
     }
     std::fprintf(stderr, "camera %d: random-10 %.3f px/px-noise, rules@9 %.2f greedy@9 %.2f\n", cam, base,
                  rules_k[9] / base, greedy_k[9] / base);
+  }
+  if (screening) {
+    std::printf("screening 300 ViewSampler views on quadrature points, %d choices: exact best in the screened top K,\n"
+                "and eps of the best of the top K over the exact best - 1 (median, max)\n", screen_cases);
+    for (int q = 0; q < kRules; ++q)
+      for (int ki = 0; ki < 4; ++ki)
+        std::printf("  %dx%d points, K %2d: %5.1f%%  loss median %.2e max %.2e\n", kRuleNodes[q][0], kRuleNodes[q][1], kShortlists[ki],
+                    100.0 * screen_hit[q][ki] / std::max(1, screen_cases), median(screen_loss[q][ki]),
+                    *std::max_element(screen_loss[q][ki].begin(), screen_loss[q][ki].end()));
   }
   std::printf("predicted eps_gt / random-10, median over %d cameras (pool %d views, tilt <= %.0f deg)\n", cameras,
               pool_size, max_tilt);

@@ -66,9 +66,10 @@ struct EngineOptions {
   // Generic board views scored alongside the rule candidates (experimental, default off = the
   // paper's pose families only): this many random views with the whole board in view (tilt up to
   // 40 degrees about any in-plane axis, 40-80% of the image width, anywhere in the image, the
-  // pose generator's border margin), drawn from the current estimate with a seed fixed by the
-  // keyframe count. The best score wins, view or rule candidate (docs/pose-selection.md,
-  // "Generic view candidates").
+  // pose generator's border margin), drawn 100 per frame in the frames before a choice (seeded by
+  // the keyframe count), screened cheaply, the best few scored exactly. The best score wins, view
+  // or rule candidate, also when a skipped target is replaced (docs/pose-selection.md, "Generic
+  // view candidates").
   int view_candidates = 0;
   // With view candidates: a view may win only if it would also reduce the targeted (MaxIOD)
   // parameter's variance at least as much as the best rule candidate does. Off by default:
