@@ -390,13 +390,13 @@ struct CalibrationEngine::Impl {
 
   double view_margin_px() const { return opt.posegen.border_margin_fraction * std::max(size.width, size.height); }
 
-  // Draws up to `n` more views into the pool, up to `size` in all, under the current estimate
+  // Draws up to `n` more views into the pool, up to `pool_size` in all, under the current estimate
   // (ViewSampler: tilt up to 40 deg, 40-80% of the width, anywhere the whole board fits).
   // process() draws kViewsPerFrame per frame while a target choice is ahead, so the choice itself
   // only screens them (docs/pose-selection.md, "Generic view candidates"). At most 200 draws per
   // view: an estimate under which the board rarely fits yields fewer views, not a long search.
-  void grow_view_pool(int n, int size) {
-    const int want = std::min(n, size - static_cast<int>(view_pool.size()));
+  void grow_view_pool(int n, int pool_size) {
+    const int want = std::min(n, pool_size - static_cast<int>(view_pool.size()));
     if (want <= 0) return;
     ViewSampling vs;
     // Where the best views of a large random pool lie (explore_information: median tilt 22 deg,
@@ -710,7 +710,8 @@ struct CalibrationEngine::Impl {
     }
     // A target choice is ahead: draw part of its view candidates now, spread over the frames in
     // which the board is moved to the current target.
-    if (opt.view_candidates > 0 && (state == EngineState::kInitialPose2 || state == EngineState::kRefining)) {
+    const bool scoring = opt.pose_candidates > 1 || opt.prospective_convergence;  // views are scored
+    if (opt.view_candidates > 0 && scoring && (state == EngineState::kInitialPose2 || state == EngineState::kRefining)) {
       grow_view_pool(kViewsPerFrame, kPoolFactor * opt.view_candidates);
     }
     r.state = state;

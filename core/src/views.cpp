@@ -29,10 +29,9 @@ bool board_fully_visible(const CameraModel& model, const Target& target, const P
            uv->x() <= model.width() - 1 - margin_px && uv->y() <= model.height() - 1 - margin_px;
   };
   const std::vector<cv::Point3d> outline = target.outline();
-  // The sheet's four corners first: a cheap early rejection.
-  Eigen::Vector2d quad[4];
-  for (int i = 0; i < 4; ++i)
-    if (!project_inside(outline[i], &quad[i])) return false;
+  // The sheet's four corners and a convex outline first: a cheap early rejection. A board seen
+  // almost edge-on, or folded by the distortion model, is no use either.
+  if (!board_outline_in_view(model, outline, R, T_cam_board.t, margin_px)) return false;
   Eigen::Vector2d uv;
   for (const cv::Point3d& c : target.corners())
     if (!project_inside(c, &uv)) return false;
@@ -42,15 +41,6 @@ bool board_fully_visible(const CameraModel& model, const Target& target, const P
     const cv::Point3d& b = outline[(e + 1) % 4];
     for (int st = 0; st < kSteps; ++st)
       if (!project_inside(a + (b - a) * (static_cast<double>(st) / kSteps), &uv)) return false;
-  }
-  // A board seen almost edge-on, or folded by the distortion model, is no use either: the
-  // projected outline must stay convex and counter-clockwise-consistent.
-  double sign = 0;
-  for (int i = 0; i < 4; ++i) {
-    const Eigen::Vector2d d1 = quad[(i + 1) % 4] - quad[i], d2 = quad[(i + 2) % 4] - quad[(i + 1) % 4];
-    const double z = d1.x() * d2.y() - d1.y() * d2.x();
-    if (sign == 0) sign = z;
-    if (z * sign <= 0) return false;
   }
   return true;
 }
