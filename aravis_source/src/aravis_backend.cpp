@@ -7,7 +7,7 @@
 
 #include "aravis_camera.hpp"
 #include "aravis_util.hpp"
-#include "posecal/error.hpp"
+#include "common/error.hpp"
 
 namespace posecal {
 

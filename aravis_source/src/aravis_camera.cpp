@@ -6,7 +6,7 @@
 #include <cstdio>
 
 #include "genicam_features.hpp"
-#include "posecal/error.hpp"
+#include "common/error.hpp"
 
 namespace posecal::aravis {
 

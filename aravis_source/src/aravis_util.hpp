@@ -9,7 +9,7 @@
 #include <string>
 #include <vector>
 
-#include "posecal/camera.hpp"
+#include "device/camera.hpp"
 
 namespace posecal::aravis {
 

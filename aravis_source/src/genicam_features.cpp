@@ -9,7 +9,7 @@
 #include <set>
 
 #include "aravis_util.hpp"
-#include "posecal/error.hpp"
+#include "common/error.hpp"
 
 namespace posecal::aravis {
 

@@ -7,7 +7,7 @@
 #include "context.hpp"
 #include "json_report.hpp"
 #include "posecal.h"
-#include "posecal/offline.hpp"
+#include "calib/offline.hpp"
 
 using namespace posecal;
 using posecal::abi::guarded;

@@ -7,7 +7,7 @@
 #include <vector>
 
 #include "posecal.h"
-#include "posecal/error.hpp"
+#include "common/error.hpp"
 
 namespace posecal::abi {
 

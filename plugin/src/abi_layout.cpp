@@ -35,7 +35,7 @@ static_assert(POSECAL_PIXEL_MONO8 == 0 && POSECAL_PIXEL_BGR8 == 1 && POSECAL_PIX
 
 // The statuses are core's error codes one-to-one (posecal/error.hpp), so abi::status_of is a
 // table, not a policy.
-#include "posecal/error.hpp"
+#include "common/error.hpp"
 static_assert(static_cast<int>(posecal::ErrorCode::kInvalidArgument) ==
                       POSECAL_E_INVALID_ARGUMENT &&
                   static_cast<int>(posecal::ErrorCode::kNotFound) == POSECAL_E_NOT_FOUND &&

@@ -11,7 +11,7 @@
 #include "evaluation.hpp"
 #include "json_report.hpp"
 #include "posecal.h"
-#include "posecal/simulation.hpp"
+#include "sim/simulation.hpp"
 
 using namespace posecal;
 using posecal::abi::guarded;

@@ -3,9 +3,9 @@
 #include <algorithm>
 
 #include "abi_common.hpp"
-#include "posecal/error.hpp"
-#include "posecal/simulation.hpp"
-#include "posecal/sources.hpp"
+#include "common/error.hpp"
+#include "sim/simulation.hpp"
+#include "device/sources.hpp"
 #ifndef POSECAL_ABI_NO_HW_BACKENDS
 #include "posecal/aravis_backend.hpp"
 #include "posecal/v4l2_backend.hpp"

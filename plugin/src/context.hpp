@@ -13,8 +13,8 @@
 #include <vector>
 
 #include "posecal.h"
-#include "posecal/camera.hpp"
-#include "posecal/target.hpp"
+#include "device/camera.hpp"
+#include "board/board.hpp"
 
 namespace posecal::abi {
 

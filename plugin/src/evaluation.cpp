@@ -1,8 +1,8 @@
 #include "evaluation.hpp"
 
 #include "abi_common.hpp"
-#include "posecal/metrics.hpp"
-#include "posecal/synthetic.hpp"
+#include "calib/metrics.hpp"
+#include "sim/synthetic.hpp"
 
 namespace posecal::abi {
 

@@ -4,8 +4,8 @@
 #include <nlohmann/json.hpp>
 #include <vector>
 
-#include "posecal/calibration.hpp"
-#include "posecal/simulation.hpp"
+#include "calib/calibration.hpp"
+#include "sim/simulation.hpp"
 
 namespace posecal::abi {
 

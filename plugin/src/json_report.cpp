@@ -2,7 +2,7 @@
 
 #include <cmath>
 
-#include "posecal/error.hpp"
+#include "common/error.hpp"
 
 namespace posecal::abi {
 

@@ -6,8 +6,8 @@
 #include <utility>
 #include <vector>
 
-#include "posecal/calibration.hpp"
-#include "posecal/camera.hpp"
+#include "calib/calibration.hpp"
+#include "device/camera.hpp"
 
 namespace posecal::abi {
 

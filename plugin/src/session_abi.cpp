@@ -16,8 +16,8 @@
 #include "evaluation.hpp"
 #include "json_report.hpp"
 #include "posecal.h"
-#include "posecal/session.hpp"
-#include "posecal/simulation.hpp"
+#include "session/session.hpp"
+#include "sim/simulation.hpp"
 
 using namespace posecal;
 using posecal::abi::guarded;

@@ -2,7 +2,7 @@
 
 #include <cstring>
 
-#include "posecal/views.hpp"
+#include "board/views.hpp"
 
 namespace posecal::testing {
 

@@ -19,8 +19,8 @@
 #include <string>
 #include <vector>
 
-#include "posecal/camera.hpp"
-#include "posecal/synthetic.hpp"
+#include "device/camera.hpp"
+#include "sim/synthetic.hpp"
 
 namespace posecal::testing {
 

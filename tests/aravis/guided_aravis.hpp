@@ -9,7 +9,7 @@
 
 #include "fake_gv_camera.hpp"
 #include "guided_loop.hpp"
-#include "posecal/engine.hpp"
+#include "select/engine.hpp"
 
 namespace posecal::testing {
 

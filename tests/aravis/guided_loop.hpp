@@ -29,9 +29,9 @@
 #include <string>
 #include <vector>
 
-#include "posecal/camera.hpp"
-#include "posecal/simulation.hpp"
-#include "posecal/synthetic.hpp"
+#include "device/camera.hpp"
+#include "sim/simulation.hpp"
+#include "sim/synthetic.hpp"
 
 namespace posecal::testing {
 

@@ -18,7 +18,7 @@
 #include "fake_gv_camera.hpp"
 #include "netns.hpp"
 #include "posecal/aravis_backend.hpp"
-#include "posecal/error.hpp"
+#include "common/error.hpp"
 
 extern char** environ;
 

@@ -14,8 +14,8 @@
 
 #include "guided_aravis.hpp"
 #include "posecal/aravis_backend.hpp"
-#include "posecal/metrics.hpp"
-#include "posecal/session.hpp"
+#include "calib/metrics.hpp"
+#include "session/session.hpp"
 
 using namespace posecal;
 using namespace posecal::testing;

@@ -6,12 +6,12 @@
 #include <optional>
 #include <random>
 
-#include "posecal/calibration.hpp"
-#include "posecal/engine.hpp"
-#include "posecal/posegen.hpp"
-#include "posecal/synthetic.hpp"
-#include "posecal/view_candidates.hpp"
-#include "posecal/views.hpp"
+#include "calib/calibration.hpp"
+#include "select/engine.hpp"
+#include "select/pose_rules.hpp"
+#include "sim/synthetic.hpp"
+#include "select/view_candidates.hpp"
+#include "board/views.hpp"
 
 using namespace posecal;
 

@@ -25,10 +25,10 @@
 #include <thread>
 #include <vector>
 
-#include "posecal/metrics.hpp"
-#include "posecal/session.hpp"
-#include "posecal/simulation.hpp"
-#include "posecal/views.hpp"
+#include "calib/metrics.hpp"
+#include "session/session.hpp"
+#include "sim/simulation.hpp"
+#include "board/views.hpp"
 
 using namespace posecal;
 

@@ -25,12 +25,12 @@
 
 #include <Eigen/Dense>
 
-#include "posecal/calibration.hpp"
-#include "posecal/engine.hpp"
-#include "posecal/posegen.hpp"
-#include "posecal/simulation.hpp"
-#include "posecal/view_candidates.hpp"
-#include "posecal/views.hpp"
+#include "calib/calibration.hpp"
+#include "select/engine.hpp"
+#include "select/pose_rules.hpp"
+#include "sim/simulation.hpp"
+#include "select/view_candidates.hpp"
+#include "board/views.hpp"
 
 using namespace posecal;
 

@@ -17,7 +17,7 @@
 #include <set>
 #include <sstream>
 
-#include "posecal/target.hpp"
+#include "board/board.hpp"
 
 namespace fs = std::filesystem;
 

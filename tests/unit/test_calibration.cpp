@@ -2,11 +2,11 @@
 
 #include <opencv2/calib3d.hpp>
 
-#include "posecal/calibration.hpp"
-#include "posecal/error.hpp"
-#include "posecal/metrics.hpp"
-#include "posecal/synthetic.hpp"
-#include "posecal/views.hpp"
+#include "calib/calibration.hpp"
+#include "common/error.hpp"
+#include "calib/metrics.hpp"
+#include "sim/synthetic.hpp"
+#include "board/views.hpp"
 
 using namespace posecal;
 

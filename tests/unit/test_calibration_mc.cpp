@@ -3,10 +3,10 @@
 // (est - true) / sigma must have unit standard deviation.
 #include <gtest/gtest.h>
 
-#include "posecal/calibration.hpp"
-#include "posecal/metrics.hpp"
-#include "posecal/synthetic.hpp"
-#include "posecal/views.hpp"
+#include "calib/calibration.hpp"
+#include "calib/metrics.hpp"
+#include "sim/synthetic.hpp"
+#include "board/views.hpp"
 
 using namespace posecal;
 

@@ -7,8 +7,8 @@
 
 #include <Eigen/LU>
 
-#include "posecal/camera_model.hpp"
-#include "posecal/error.hpp"
+#include "lens/camera_model.hpp"
+#include "common/error.hpp"
 
 using namespace posecal;
 

@@ -9,9 +9,9 @@
 #include <utility>
 #include <vector>
 
-#include "posecal/metrics.hpp"
-#include "posecal/session.hpp"
-#include "posecal/simulation.hpp"
+#include "calib/metrics.hpp"
+#include "session/session.hpp"
+#include "sim/simulation.hpp"
 
 using namespace posecal;
 

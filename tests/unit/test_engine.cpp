@@ -3,11 +3,11 @@
 
 #include <memory>
 
-#include "posecal/engine.hpp"
-#include "posecal/error.hpp"
-#include "posecal/session.hpp"
-#include "posecal/simulation.hpp"
-#include "posecal/views.hpp"
+#include "select/engine.hpp"
+#include "common/error.hpp"
+#include "session/session.hpp"
+#include "sim/simulation.hpp"
+#include "board/views.hpp"
 
 using namespace posecal;
 using Measure = EngineOptions::ConvergenceMeasure;

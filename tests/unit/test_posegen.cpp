@@ -1,9 +1,9 @@
 // Pose generation rules (paper §3.3, §3.4), one test per rule.
 #include <gtest/gtest.h>
 
-#include "posecal/error.hpp"
-#include "posecal/posegen.hpp"
-#include "posecal/views.hpp"
+#include "common/error.hpp"
+#include "select/pose_rules.hpp"
+#include "board/views.hpp"
 
 using namespace posecal;
 

@@ -5,9 +5,9 @@
 #include <optional>
 #include <random>
 
-#include "posecal/error.hpp"
-#include "posecal/synthetic.hpp"
-#include "posecal/views.hpp"
+#include "common/error.hpp"
+#include "sim/synthetic.hpp"
+#include "board/views.hpp"
 
 using namespace posecal;
 

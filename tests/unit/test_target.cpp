@@ -5,10 +5,10 @@
 #include <opencv2/aruco/charuco.hpp>
 #include <opencv2/imgcodecs.hpp>
 
-#include "posecal/error.hpp"
-#include "posecal/synthetic.hpp"
-#include "posecal/target.hpp"
-#include "posecal/views.hpp"
+#include "common/error.hpp"
+#include "sim/synthetic.hpp"
+#include "board/board.hpp"
+#include "board/views.hpp"
 
 using namespace posecal;
 

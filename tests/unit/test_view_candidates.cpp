@@ -4,11 +4,11 @@
 #include <cmath>
 #include <random>
 
-#include "posecal/calibration.hpp"
-#include "posecal/error.hpp"
-#include "posecal/synthetic.hpp"
-#include "posecal/view_candidates.hpp"
-#include "posecal/views.hpp"
+#include "calib/calibration.hpp"
+#include "common/error.hpp"
+#include "sim/synthetic.hpp"
+#include "select/view_candidates.hpp"
+#include "board/views.hpp"
 
 using namespace posecal;
 

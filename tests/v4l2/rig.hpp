@@ -13,7 +13,7 @@
 #include <thread>
 #include <vector>
 
-#include "posecal/error.hpp"
+#include "common/error.hpp"
 #include "posecal/v4l2_backend.hpp"
 #include "uvc_emulator.hpp"
 

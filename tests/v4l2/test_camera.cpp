@@ -1,7 +1,7 @@
 // The backend and its cameras against the emulated C525, LifeCam and read()-only mono camera.
 #include <opencv2/imgproc.hpp>
 
-#include "posecal/target.hpp"
+#include "board/board.hpp"
 #include "rig.hpp"
 
 namespace posecal::test {

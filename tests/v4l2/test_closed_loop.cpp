@@ -11,8 +11,8 @@
 #include <cstdio>
 
 #include "guided_loop.hpp"
-#include "posecal/metrics.hpp"
-#include "posecal/session.hpp"
+#include "calib/metrics.hpp"
+#include "session/session.hpp"
 #include "rig.hpp"
 
 using namespace posecal;

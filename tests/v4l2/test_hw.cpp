@@ -12,8 +12,8 @@
 #include <mutex>
 #include <thread>
 
-#include "posecal/error.hpp"
-#include "posecal/target.hpp"
+#include "common/error.hpp"
+#include "board/board.hpp"
 #include "posecal/v4l2_backend.hpp"
 
 namespace posecal {

@@ -11,8 +11,8 @@
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
-#include "posecal/synthetic.hpp"
-#include "posecal/views.hpp"
+#include "sim/synthetic.hpp"
+#include "board/views.hpp"
 
 namespace posecal::emu {
 

@@ -17,7 +17,7 @@
 #include <memory>
 #include <string>
 
-#include "posecal/camera.hpp"
+#include "device/camera.hpp"
 
 namespace posecal {
 

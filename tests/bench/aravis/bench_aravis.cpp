@@ -28,7 +28,7 @@
 #include <vector>
 
 #include "posecal/aravis_backend.hpp"
-#include "posecal/error.hpp"
+#include "common/error.hpp"
 
 extern char** environ;
 

@@ -50,9 +50,9 @@
 #include "guided_aravis.hpp"
 #include "netns.hpp"
 #include "posecal/aravis_backend.hpp"
-#include "posecal/error.hpp"
-#include "posecal/metrics.hpp"
-#include "posecal/session.hpp"
+#include "common/error.hpp"
+#include "calib/metrics.hpp"
+#include "session/session.hpp"
 
 using namespace posecal;
 using namespace posecal::testing;

@@ -20,7 +20,7 @@
 #include <string>
 #include <vector>
 
-#include "posecal/camera.hpp"
+#include "device/camera.hpp"
 #include "posecal/v4l2_io.hpp"
 
 namespace posecal {

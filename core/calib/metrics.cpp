@@ -1,0 +1,51 @@
+#include "calib/metrics.hpp"
+
+#include <cmath>
+#include <limits>
+
+#include "common/error.hpp"
+
+namespace posecal {
+
+TestError test_error(const CameraModel& estimate, const std::vector<Observation>& test_frames) {
+  TestError out;
+  double ss = 0;
+  for (const auto& frame : test_frames) {
+    Pose pose;
+    double rms = 0;
+    if (!estimate_pose(estimate, frame, &pose, &rms)) {
+      ++out.frames_failed;
+      continue;
+    }
+    ++out.frames_used;
+    out.points += static_cast<int>(frame.size());
+    ss += rms * rms * static_cast<double>(frame.size());
+  }
+  out.rms_px =
+      out.points > 0 ? std::sqrt(ss / out.points) : std::numeric_limits<double>::quiet_NaN();
+  return out;
+}
+
+double ground_truth_error(const CameraModel& truth, const CameraModel& estimate, int cols,
+                          int rows) {
+  if (cols < 1 || rows < 1) throw Error(ErrorCode::kInvalidArgument, "eps_gt: grid must be >= 1x1");
+  if (truth.size() != estimate.size()) {
+    throw Error(ErrorCode::kInvalidArgument, "eps_gt: models have different image sizes");
+  }
+  double sum = 0;
+  int n = 0;
+  for (int j = 0; j < rows; ++j) {
+    for (int i = 0; i < cols; ++i) {
+      const Eigen::Vector2d p((i + 0.5) * truth.width() / cols - 0.5,
+                              (j + 0.5) * truth.height() / rows - 0.5);
+      Eigen::Vector2d xn, q;
+      if (!truth.unproject(p, &xn)) continue;
+      if (!estimate.project(Eigen::Vector3d(xn.x(), xn.y(), 1.0), &q)) continue;
+      sum += (q - p).norm();
+      ++n;
+    }
+  }
+  return n > 0 ? sum / n : std::numeric_limits<double>::quiet_NaN();
+}
+
+}  // namespace posecal

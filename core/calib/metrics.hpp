@@ -1,0 +1,28 @@
+// Error metrics used by every benchmark (paper §2.1 and §5).
+#pragma once
+
+#include <vector>
+
+#include "calib/calibration.hpp"
+#include "lens/camera_model.hpp"
+
+namespace posecal {
+
+struct TestError {
+  double rms_px = 0;      // eps_test: RMS reprojection error over all held-out points
+  int frames_used = 0;    // frames whose pose could be fitted
+  int frames_failed = 0;  // frames where PnP failed (counted, not hidden)
+  int points = 0;
+};
+
+// eps_test: RMS reprojection error on held-out frames, each frame's board pose re-fitted by PnP
+// with the estimated intrinsics (the paper's estimation error).
+TestError test_error(const CameraModel& estimate, const std::vector<Observation>& test_frames);
+
+// eps_gt (synthetic runs): mean pixel distance, over a cols x rows grid of the image, between the
+// true and the estimated projection of the same rays. Grid points at pixel
+// ((i + 0.5) W / cols - 0.5, (j + 0.5) H / rows - 0.5). Returns NaN if no grid ray exists.
+double ground_truth_error(const CameraModel& truth, const CameraModel& estimate, int cols = 40,
+                          int rows = 23);
+
+}  // namespace posecal

@@ -1,0 +1,208 @@
+// The calibration engine: efficient pose selection (paper §3-§4) as an explicit state machine
+// fed one frame at a time. It knows nothing of where frames come from.
+//
+//   WaitingForBoard --board seen--> Bootstrapping --focal-only fit ok--> InitialPose1
+//   InitialPose1 --keyframe 1--> InitialPose2 --keyframe 2 + calibration--> Refining(param)
+//   Refining --keyframe, all converged--> Converged
+//   Refining --keyframe cap reached--> Failed (result kept, reported as not converged)
+//   any state --fatal error--> Failed
+// A keyframe the calibration rejects (degenerate) is dropped and the same target stays.
+// docs/pose-selection.md draws this with every transition and its event.
+#pragma once
+
+#include <functional>
+#include <memory>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "calib/calibration.hpp"
+#include "device/camera.hpp"
+#include "select/pose_rules.hpp"
+#include "board/board.hpp"
+
+namespace posecal {
+
+enum class EngineState {
+  kWaitingForBoard,
+  kBootstrapping,
+  kInitialPose1,
+  kInitialPose2,
+  kRefining,
+  kConverged,
+  kFailed,
+};
+const char* engine_state_name(EngineState s);
+
+struct EngineOptions {
+  TargetSpec target;                     // the board
+  double convergence_threshold = 0.1;    // ratio test: relative variance reduction (paper §4.1)
+  int max_keyframes = 20;                // cap; reaching it ends the run as not converged
+  double constraint_factor = 5.0;        // constraints >= factor x unknowns (paper §4.3)
+  double still_motion_px = 1.5;          // mean corner motion between frames (paper §4.3)
+  double jaccard_threshold = 0.8;        // target reached (paper §4.2)
+  bool robot = false;                    // robot mode: the host reports "pose reached"
+  int target_timeout_frames = 0;         // > 0: skip a refinement target after this many frames
+  int bootstrap_min_corners = 0;         // 0: half the board's corners (reference implementation)
+  // A bootstrap is accepted only if its focal length is determined to this relative standard
+  // deviation (at the measured noise, at least 0.1 px); among accepted ones the lowest residual
+  // wins (paper §3.4). A nearly
+  // fronto-parallel view fits any focal length with a low residual, so the residual alone would
+  // prefer exactly the views that cannot tell f (docs/pose-selection.md).
+  double bootstrap_max_relative_std = 0.05;
+  // ... and only if moving the assumed principal point by 5% of the image changes f by less than
+  // this fraction (a weak view turns the unknown principal point into a biased f).
+  double bootstrap_max_pp_sensitivity = 0.2;
+  double initial_focal_guess = 0.0;      // f before any estimate; 0: max(width, height)
+  // Refinement targets: 1 = the paper's rule (next sequence element / most distorted region);
+  // n > 1 = the best of the first n rule-generated candidates by predicted variance of the
+  // targeted parameter (docs/pose-selection.md).
+  int pose_candidates = 6;
+  // How the candidates are compared: kProjection = the lowest expected projection error over the
+  // whole image after the pose (trace(G Sigma'), see projection_gram()); kParameterVariance =
+  // the lowest predicted variance of the targeted parameter. The prospective test uses the
+  // targeted parameter's predicted variance after the chosen candidate (docs/pose-selection.md).
+  enum class CandidateScore { kProjection, kParameterVariance } candidate_score = CandidateScore::kProjection;
+  // Generic board views scored alongside the rule candidates (experimental, default off = the
+  // paper's pose families only): this many random views with the whole board in view (tilt up to
+  // 40 degrees about any in-plane axis, 40-80% of the image width, anywhere in the image, the
+  // pose generator's border margin), drawn 100 per frame in the frames before a choice (seeded by
+  // the keyframe count), screened cheaply, the best few scored exactly. The best score wins, view
+  // or rule candidate, also when a skipped target is replaced (docs/pose-selection.md, "Generic
+  // view candidates").
+  int view_candidates = 0;
+  // With view candidates: a view may win only if it would also reduce the targeted (MaxIOD)
+  // parameter's variance at least as much as the best rule candidate does. Off by default:
+  // measured, the free choice needs fewer keyframes for the same accuracy (docs/benchmarks.md).
+  bool view_must_serve_target = false;
+  // Ratio test measure: kVariance = 1 - sigma'^2 / sigma^2 (paper §4.1); kStd = 1 - sigma' /
+  // sigma (the reference implementation; at 10% it equals a 19% variance reduction).
+  enum class ConvergenceMeasure { kVariance, kStd } convergence_measure = ConvergenceMeasure::kVariance;
+  // Before capturing a pose for a parameter, predict the ratio test: if even the best pose the
+  // rules generate for it would reduce its variance by less than the threshold, the parameter
+  // converges without that keyframe (docs/pose-selection.md).
+  bool prospective_convergence = true;
+  // The paper's ratio test on the keyframe just captured. Off: parameters converge only
+  // prospectively (needs prospective_convergence), i.e. by what the best pose the rules can
+  // generate would add, not by what an imperfectly reached pose did add.
+  bool measured_convergence = true;
+  PoseGenOptions posegen;
+  CalibrationOptions calibration;
+  DetectorOptions detector;
+  bool is_valid(std::string* error) const;
+};
+
+struct FrameReport {
+  uint64_t frame_index = 0;
+  EngineState state = EngineState::kWaitingForBoard;
+  bool board_visible = false;
+  int corners = 0;
+  int corners_required = 0;   // for a keyframe now (paper §4.3 heuristic)
+  bool pose_estimated = false;
+  double jaccard = -1;        // -1 when no target or no pose
+  bool still = false;
+  double motion_px = -1;      // mean corner motion since the previous frame, -1 if not comparable
+  bool pose_reached = false;
+  bool captured = false;
+  int keyframes = 0;
+  std::string target_parameter;  // "" during initialisation and after the end
+  std::string guidance;          // what the person should do now
+};
+
+struct EngineEvent {
+  enum class Kind {
+    kStateChanged,       // from -> to
+    kCaptured,           // a keyframe was taken
+    kKeyframeRejected,   // the calibration could not use it (message says why)
+    kCalibrated,         // recalibrated after a keyframe
+    kParameterConverged, // `parameter` converged
+    kTargetChanged,      // a new target pose (note says what was adjusted)
+    kTargetSkipped,      // target not reached within target_timeout_frames
+    kError,              // a problem worth reporting that did not stop the engine
+  };
+  explicit EngineEvent(Kind k) : kind(k) {}
+  Kind kind;
+  EngineState from = EngineState::kWaitingForBoard;
+  EngineState to = EngineState::kWaitingForBoard;
+  int keyframes = 0;
+  std::string parameter;
+  std::string message;
+};
+const char* engine_event_name(EngineEvent::Kind k);
+
+struct ParameterStatus {
+  std::string name;
+  double value = 0;
+  double std = -1;       // scaled by the residual variance (honest); -1 before calibration
+  double std_unit = -1;  // Sigma_p = I (paper eq. 5)
+  double index_of_dispersion = -1;
+  bool converged = false;
+  int targeted = 0;      // keyframes captured for this parameter
+};
+
+// Which candidate pose to capture, given each candidate's score (lower is better) and the
+// targeted parameter's predicted variance after it: the best-scored of the rule candidates
+// [0, n_rule), replaced by a generic view [n_rule, size) that scores lower — with
+// `must_serve_target`, only by a view that also leaves the targeted parameter's variance no higher
+// than the rule pick does (EngineOptions::view_candidates, view_must_serve_target). Ties keep the
+// earlier candidate. Throws Error(kInvalidArgument) on inconsistent sizes or no rule candidate.
+size_t choose_candidate(const std::vector<double>& score, const std::vector<double>& target_var, size_t n_rule,
+                        bool must_serve_target);
+
+// The ratio test (paper §4.1) after a keyframe captured for parameter `targeted`: returns the
+// parameters of the targeted parameter's group that converge, given each parameter's variance
+// before and after the keyframe. `group_keyframes` counts the refinement keyframes captured per
+// group (pinhole, distortion) including this one: a parameter other than the target converges
+// only once its group has had two keyframes of its own strategy (docs/pose-selection.md).
+std::vector<int> ratio_test(const std::vector<double>& var_before, const std::vector<double>& var_after,
+                            int targeted, const std::vector<bool>& converged, const int group_keyframes[2],
+                            double threshold, EngineOptions::ConvergenceMeasure measure);
+
+class CalibrationEngine {
+ public:
+  CalibrationEngine(cv::Size image_size, const EngineOptions& options = {});
+  ~CalibrationEngine();
+  CalibrationEngine(const CalibrationEngine&) = delete;
+  CalibrationEngine& operator=(const CalibrationEngine&) = delete;
+
+  // Processes one frame (8-bit grey or BGR, the engine's image size) and advances the state
+  // machine. Throws Error(kInvalidArgument) for an image of the wrong size or type.
+  FrameReport process(const cv::Mat& image);
+
+  // Robot mode: the host says the robot has reached the current target; the next still frame
+  // with enough corners is captured. Error(kState) outside the initial/refining states.
+  void report_pose_reached();
+  // Gives up on the current refinement target and generates the next one.
+  void skip_target();
+
+  EngineState state() const;
+  const std::string& failure_reason() const;
+  int keyframes() const;
+  bool converged() const { return state() == EngineState::kConverged; }
+  // The current target (none while waiting for the board and after the end).
+  const std::optional<TargetPose>& target() const;
+  int target_parameter() const;  // index, -1 if none
+  // Current intrinsics: the initial guess, then the bootstrap, then the calibration.
+  const CameraModel& estimate() const;
+  // The last full calibration (nullptr before the second keyframe).
+  const CalibrationResult* result() const;
+  std::vector<ParameterStatus> parameters() const;
+  const std::vector<Observation>& keyframe_observations() const;
+  const FrameReport& last_report() const;
+  const Target& board() const;
+  const EngineOptions& options() const;
+  // What a guided camera (simulated operator) needs.
+  GuidanceInfo guidance_info() const;
+
+  // Draws the guidance overlay into an 8-bit grey or BGR image of the engine's size: the target
+  // board projected with the current intrinsics and distortion, the detected corners, the text.
+  void draw_overlay(cv::Mat& image) const;
+
+  void set_event_callback(std::function<void(const EngineEvent&)> cb);
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace posecal

@@ -1,0 +1,140 @@
+#include "session/session.hpp"
+
+#include "common/error.hpp"
+
+namespace posecal {
+
+const char* step_status_name(StepStatus s) {
+  switch (s) {
+    case StepStatus::kFrame: return "frame";
+    case StepStatus::kTimeout: return "timeout";
+    case StepStatus::kDisconnected: return "disconnected";
+    case StepStatus::kEndOfStream: return "end_of_stream";
+    case StepStatus::kFinished: return "finished";
+  }
+  return "unknown";
+}
+
+CalibrationSession::CalibrationSession(std::unique_ptr<Camera> camera, const EngineOptions& options,
+                                       bool lock_settings)
+    : camera_(std::move(camera)), options_(options), lock_settings_(lock_settings) {
+  if (!camera_) throw Error(ErrorCode::kInvalidArgument, "session: no camera");
+  std::string why;
+  if (!options.is_valid(&why)) throw Error(ErrorCode::kInvalidArgument, "session options: " + why);
+  t0_ = std::chrono::steady_clock::now();
+}
+
+CalibrationSession::~CalibrationSession() {
+  try {
+    camera_->stop();
+  } catch (...) {
+    // Destructors never throw; a camera that cannot stop is already gone.
+  }
+}
+
+void CalibrationSession::set_event_callback(std::function<void(const SessionEvent&)> cb) {
+  callback_ = std::move(cb);
+  if (engine_) {
+    engine_->set_event_callback([this](const EngineEvent& e) { emit({SessionEvent::Kind::kEngine, e, ""}); });
+  }
+}
+
+void CalibrationSession::emit(const SessionEvent& e) {
+  if (callback_) callback_(e);
+}
+
+void CalibrationSession::ensure_engine(cv::Size size) {
+  if (engine_) {
+    if (size.width != engine_->estimate().width() || size.height != engine_->estimate().height()) {
+      throw Error(ErrorCode::kInvalidArgument, "session: frame size changed from " +
+                                                   std::to_string(engine_->estimate().width()) + "x" +
+                                                   std::to_string(engine_->estimate().height()) + " to " +
+                                                   std::to_string(size.width) + "x" + std::to_string(size.height));
+    }
+    return;
+  }
+  engine_ = std::make_unique<CalibrationEngine>(size, options_);
+  engine_->set_event_callback([this](const EngineEvent& e) { emit({SessionEvent::Kind::kEngine, e, ""}); });
+}
+
+CalibrationEngine& CalibrationSession::engine() {
+  if (!engine_) throw Error(ErrorCode::kState, "session: no frame processed yet");
+  return *engine_;
+}
+
+bool CalibrationSession::finished() const {
+  return engine_ && (engine_->state() == EngineState::kConverged || engine_->state() == EngineState::kFailed);
+}
+
+double CalibrationSession::wall_ms() const {
+  return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0_).count();
+}
+
+FrameReport CalibrationSession::feed(const cv::Mat& image) {
+  // A host frame is the caller's only for this call: last_frame() keeps a copy.
+  return process(image.clone(), nullptr);
+}
+
+FrameReport CalibrationSession::process(const cv::Mat& image, std::shared_ptr<void> hold) {
+  if (finished()) throw Error(ErrorCode::kState, "session: calibration already finished");
+  ensure_engine(image.size());
+  // Camera frames may point into a backend buffer (zero-copy Aravis frames): keep the buffer
+  // alive as long as last_frame() refers to it.
+  last_frame_ = image;
+  last_hold_ = std::move(hold);
+  ++frames_;
+  const FrameReport r = engine_->process(image);
+  camera_->guide(engine_->guidance_info());
+  if (camera_->take_pose_reached() && !finished()) {
+    try {
+      engine_->report_pose_reached();
+    } catch (const Error&) {
+      // No target at this instant (e.g. just converged): nothing to report.
+    }
+  }
+  return r;
+}
+
+StepStatus CalibrationSession::step(int timeout_ms) {
+  if (finished()) return StepStatus::kFinished;
+  if (timeout_ms < 0) throw Error(ErrorCode::kInvalidArgument, "session: timeout must be >= 0");
+  if (!started_) {
+    if (lock_settings_) {
+      try {
+        locked_ = camera_->lock_for_calibration();
+      } catch (const Error& e) {
+        emit({SessionEvent::Kind::kCameraError, std::nullopt, std::string("settings lock failed: ") + e.what()});
+      }
+    }
+    camera_->start();
+    started_ = true;
+  }
+  Frame frame;
+  FrameStatus fs;
+  try {
+    fs = camera_->next_frame(timeout_ms, &frame);
+  } catch (const Error& e) {
+    if (e.code() != ErrorCode::kDevice) throw;
+    fs = FrameStatus::kDisconnected;
+  }
+  switch (fs) {
+    case FrameStatus::kTimeout: return StepStatus::kTimeout;
+    case FrameStatus::kEndOfStream: return StepStatus::kEndOfStream;
+    case FrameStatus::kDisconnected:
+      if (!disconnected_) {
+        disconnected_ = true;
+        emit({SessionEvent::Kind::kCameraDisconnected, std::nullopt,
+              "camera '" + camera_->info().uri + "' disconnected; keyframes kept"});
+      }
+      return StepStatus::kDisconnected;
+    case FrameStatus::kOk: break;
+  }
+  if (disconnected_) {
+    disconnected_ = false;
+    emit({SessionEvent::Kind::kCameraReconnected, std::nullopt, "camera '" + camera_->info().uri + "' is back"});
+  }
+  process(frame.image, frame.hold);
+  return StepStatus::kFrame;
+}
+
+}  // namespace posecal

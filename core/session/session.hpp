@@ -1,0 +1,73 @@
+// A calibration session: one camera feeding one engine. The loop every host runs:
+//   step(timeout) = next frame from the camera -> engine -> guidance back to the camera.
+// Survives camera disconnects: the engine and its keyframes are kept, and the session goes on
+// when the camera delivers frames again.
+#pragma once
+
+#include <chrono>
+#include <functional>
+#include <map>
+#include <memory>
+#include <optional>
+#include <string>
+
+#include "device/camera.hpp"
+#include "select/engine.hpp"
+
+namespace posecal {
+
+enum class StepStatus { kFrame, kTimeout, kDisconnected, kEndOfStream, kFinished };
+const char* step_status_name(StepStatus s);
+
+struct SessionEvent {
+  enum class Kind { kEngine, kCameraDisconnected, kCameraReconnected, kCameraError } kind;
+  std::optional<EngineEvent> engine;  // for kEngine
+  std::string message;
+};
+
+class CalibrationSession {
+ public:
+  // The engine is created at the first frame, when the image size is known.
+  CalibrationSession(std::unique_ptr<Camera> camera, const EngineOptions& options,
+                     bool lock_settings = true);
+  ~CalibrationSession();
+
+  // Takes at most one frame (waiting at most timeout_ms) and advances the engine.
+  StepStatus step(int timeout_ms);
+  // Processes a frame the host supplies (external sessions); synchronous.
+  FrameReport feed(const cv::Mat& image);
+
+  bool finished() const;  // converged or failed
+  bool has_engine() const { return engine_ != nullptr; }
+  CalibrationEngine& engine();  // Error(kState) before the first frame
+  const CalibrationEngine* engine_ptr() const { return engine_.get(); }
+  Camera& camera() { return *camera_; }
+  const EngineOptions& options() const { return options_; }
+  const std::map<std::string, std::string>& locked_settings() const { return locked_; }
+  bool disconnected() const { return disconnected_; }
+  uint64_t frames_processed() const { return frames_; }
+  const cv::Mat& last_frame() const { return last_frame_; }
+  double wall_ms() const;
+
+  void set_event_callback(std::function<void(const SessionEvent&)> cb);
+
+ private:
+  void ensure_engine(cv::Size size);
+  FrameReport process(const cv::Mat& image, std::shared_ptr<void> hold);
+  void emit(const SessionEvent& e);
+
+  std::unique_ptr<Camera> camera_;
+  EngineOptions options_;
+  std::unique_ptr<CalibrationEngine> engine_;
+  std::function<void(const SessionEvent&)> callback_;
+  std::map<std::string, std::string> locked_;
+  bool lock_settings_;
+  bool started_ = false;
+  bool disconnected_ = false;
+  uint64_t frames_ = 0;
+  cv::Mat last_frame_;
+  std::shared_ptr<void> last_hold_;  // keeps a zero-copy backend buffer alive with last_frame_
+  std::chrono::steady_clock::time_point t0_;
+};
+
+}  // namespace posecal

@@ -1,0 +1,271 @@
+#include "sim/synthetic.hpp"
+
+#include <Eigen/Dense>
+#include <algorithm>
+#include <cmath>
+#include <opencv2/imgproc.hpp>
+
+#include "common/error.hpp"
+
+namespace posecal {
+
+void RenderOptions::validate() const {
+  auto fail = [](const std::string& why) {
+    throw Error(ErrorCode::kInvalidArgument, "render options: " + why);
+  };
+  if (supersample < 1 || supersample > 8) fail("supersample must be in [1, 8]");
+  if (!(blur_sigma_px >= 0 && blur_sigma_px <= 20)) fail("blur sigma must be in [0, 20] px");
+  if (!(noise_sigma >= 0 && noise_sigma <= 100))
+    fail("noise sigma must be in [0, 100] grey levels");
+  if (!(paper_white >= 0 && paper_white <= 255)) fail("paper white must be in [0, 255]");
+  if (!(ink_black >= 0 && ink_black <= 255)) fail("ink black must be in [0, 255]");
+  if (!(paper_white > ink_black + 10))
+    fail("paper white must exceed ink black by > 10 grey levels");
+  if (!(exposure > 0 && exposure <= 10)) fail("exposure must be in (0, 10]");
+  if (!(background >= 0 && background <= 255)) fail("background must be in [0, 255]");
+  if (!(background_texture >= 0 && background_texture <= 128))
+    fail("background texture in [0, 128]");
+}
+
+namespace {
+
+constexpr int kTexelsPerSquare = 128;   // level 0; a multiple of 2^kMipLevels
+constexpr int kMipLevels = 5;           // 128 .. 8 texels per square
+constexpr double kMarginSquares = 1.0;  // white paper around the printed pattern
+
+uint64_t mix(uint64_t x) {
+  // splitmix64 finaliser: decorrelates (seed, frame) pairs.
+  x += 0x9e3779b97f4a7c15ull;
+  x = (x ^ (x >> 30)) * 0xbf58476d1ce4e5b9ull;
+  x = (x ^ (x >> 27)) * 0x94d049bb133111ebull;
+  return x ^ (x >> 31);
+}
+
+}  // namespace
+
+struct SyntheticCamera::Impl {
+  CameraModel model;
+  Target target;
+  RenderOptions options;
+  cv::Mat rays;                 // CV_32FC2 normalised rays per sample
+  std::vector<cv::Mat> levels;  // CV_8UC2: (albedo, coverage) per mip level
+  std::vector<double> metres_per_texel;
+  double margin_m = 0;
+  cv::Mat background;  // CV_32F, output resolution
+  uint64_t frame = 0;
+  // Scratch buffers reused between frames.
+  cv::Mat map, sampled, pixels;
+
+  void build_background() {
+    cv::RNG rng(mix(options.seed ^ 0x5eedba5eull));
+    const int w = model.width(), h = model.height();
+    background = cv::Mat(h, w, CV_32F, cv::Scalar(options.background));
+    if (options.background_texture <= 0) return;
+    // Two octaves of smooth noise: looks like an out-of-focus room, never like a board corner.
+    for (int cells : {6, 23}) {
+      cv::Mat coarse(cells * h / std::max(w, h) + 2, cells * w / std::max(w, h) + 2, CV_32F);
+      rng.fill(coarse, cv::RNG::UNIFORM, -1.0, 1.0);
+      cv::Mat fine;
+      cv::resize(coarse, fine, cv::Size(w, h), 0, 0, cv::INTER_CUBIC);
+      background += fine * (options.background_texture * (cells == 6 ? 1.0 : 0.35));
+    }
+  }
+};
+
+SyntheticCamera::SyntheticCamera(const CameraModel& truth, const Target& target,
+                                 const RenderOptions& options)
+    : impl_(std::make_unique<Impl>()) {
+  std::string why;
+  if (!truth.is_valid(&why)) throw Error(ErrorCode::kInvalidArgument, "synthetic camera: " + why);
+  options.validate();
+  impl_->model = truth;
+  impl_->target = target;
+  impl_->options = options;
+  impl_->rays = truth.ray_map(options.supersample);
+  const BoardTexture tex = target.render(kTexelsPerSquare, kMarginSquares);
+  impl_->margin_m = tex.margin_m;
+  cv::Mat level;
+  cv::Mat alpha(tex.image.size(), CV_8U, cv::Scalar(255));
+  cv::merge(std::vector<cv::Mat>{tex.image, alpha}, level);
+  double mpt = tex.metres_per_texel;
+  for (int l = 0; l < kMipLevels; ++l) {
+    impl_->levels.push_back(level);
+    impl_->metres_per_texel.push_back(mpt);
+    // Box filter by exactly 2: texel i of the next level is centred on texels 2i, 2i+1.
+    cv::Mat next;
+    cv::resize(level, next, cv::Size(level.cols / 2, level.rows / 2), 0, 0, cv::INTER_AREA);
+    level = next;
+    mpt *= 2;
+  }
+  impl_->build_background();
+}
+
+SyntheticCamera::~SyntheticCamera() = default;
+SyntheticCamera::SyntheticCamera(SyntheticCamera&&) noexcept = default;
+SyntheticCamera& SyntheticCamera::operator=(SyntheticCamera&&) noexcept = default;
+
+const CameraModel& SyntheticCamera::model() const { return impl_->model; }
+const Target& SyntheticCamera::target() const { return impl_->target; }
+const RenderOptions& SyntheticCamera::options() const { return impl_->options; }
+uint64_t SyntheticCamera::frames_rendered() const { return impl_->frame; }
+
+void SyntheticCamera::set_options(const RenderOptions& options) {
+  options.validate();
+  const bool new_rays = options.supersample != impl_->options.supersample;
+  const bool new_bg = options.seed != impl_->options.seed ||
+                      options.background != impl_->options.background ||
+                      options.background_texture != impl_->options.background_texture;
+  impl_->options = options;
+  if (new_rays) impl_->rays = impl_->model.ray_map(options.supersample);
+  if (new_bg) impl_->build_background();
+}
+
+std::vector<cv::Point2d> SyntheticCamera::true_corners(const Pose& T_cam_board) const {
+  return project_points(impl_->model, T_cam_board, impl_->target.corners());
+}
+
+cv::Mat SyntheticCamera::render(const Pose& T_cam_board) {
+  Impl& s = *impl_;
+  if (!T_cam_board.is_finite())
+    throw Error(ErrorCode::kInvalidArgument, "render: pose is not finite");
+  const RenderOptions& o = s.options;
+  const int n = o.supersample;
+  const uint64_t frame_index = s.frame++;
+
+  // Homography from the board plane (X, Y, 1) to normalised image coordinates: [r1 r2 t].
+  const Eigen::Matrix3d R = T_cam_board.R();
+  Eigen::Matrix3d H;
+  H.col(0) = R.col(0);
+  H.col(1) = R.col(1);
+  H.col(2) = T_cam_board.t;
+  Eigen::Matrix3d Hinv = H.inverse();
+  if (!Hinv.allFinite()) {
+    // Board plane seen edge-on through the centre of projection: nothing of it is visible.
+    Hinv.setZero();
+  }
+
+  // Mip level: smallest texel footprint of one sample over the board's outline and centre
+  // (sharpest detail needed anywhere on the board), ignoring the lens' local magnification.
+  const double sample_step = 1.0 / (n * 0.5 * (s.model.fx() + s.model.fy()));
+  double min_footprint_m = std::numeric_limits<double>::infinity();
+  const cv::Size2d bs = s.target.board_size_m();
+  for (const auto& B :
+       {cv::Point2d(0, 0), cv::Point2d(bs.width, 0), cv::Point2d(0, bs.height),
+        cv::Point2d(bs.width, bs.height), cv::Point2d(bs.width / 2, bs.height / 2)}) {
+    const Eigen::Vector3d q = H * Eigen::Vector3d(B.x, B.y, 1.0);
+    if (!(q.z() > 1e-9)) continue;
+    // d(normalised)/d(board) at B, then its inverse gives board metres per normalised unit.
+    Eigen::Matrix2d J;
+    J << (H(0, 0) * q.z() - q.x() * H(2, 0)), (H(0, 1) * q.z() - q.x() * H(2, 1)),
+        (H(1, 0) * q.z() - q.y() * H(2, 0)), (H(1, 1) * q.z() - q.y() * H(2, 1));
+    J /= q.z() * q.z();
+    const Eigen::Matrix2d Jinv = J.inverse();
+    if (!Jinv.allFinite()) continue;
+    const double footprint = Jinv.operatorNorm() * sample_step;
+    min_footprint_m = std::min(min_footprint_m, footprint);
+  }
+  int level = 0;
+  if (std::isfinite(min_footprint_m)) {
+    const double texels = min_footprint_m / s.metres_per_texel[0];
+    level = std::clamp(static_cast<int>(std::floor(std::log2(std::max(texels, 1.0)))), 0,
+                       kMipLevels - 1);
+  }
+  const double m = s.metres_per_texel[level];
+  // Board (X, Y) -> texel (u, v) at this level: u = (X + margin) / m - 0.5.
+  Eigen::Matrix3d A;
+  A << 1 / m, 0, s.margin_m / m - 0.5, 0, 1 / m, s.margin_m / m - 0.5, 0, 0, 1;
+  const Eigen::Matrix3f M = (A * Hinv).cast<float>();
+
+  // Only the pixels the printed sheet (board plus white margin) can cover need sampling: its
+  // outline, projected densely through the true model, bounds them. If any outline point
+  // cannot be projected (behind the camera), sample the whole frame.
+  cv::Rect roi(0, 0, s.model.width(), s.model.height());
+  {
+    const double m0 = s.margin_m;
+    const std::vector<cv::Point3d> sheet = {{-m0, -m0, 0},
+                                            {bs.width + m0, -m0, 0},
+                                            {bs.width + m0, bs.height + m0, 0},
+                                            {-m0, bs.height + m0, 0}};
+    std::vector<cv::Point3d> edge;
+    constexpr int kSteps = 32;
+    for (int e = 0; e < 4; ++e)
+      for (int k = 0; k < kSteps; ++k)
+        edge.push_back(sheet[e] +
+                       (sheet[(e + 1) % 4] - sheet[e]) * (static_cast<double>(k) / kSteps));
+    const auto proj = project_points(s.model, T_cam_board, edge);
+    double x0 = 1e18, y0 = 1e18, x1 = -1e18, y1 = -1e18;
+    bool ok = true;
+    for (const auto& p : proj) {
+      if (!std::isfinite(p.x) || !std::isfinite(p.y) || std::abs(p.x) > 1e6 ||
+          std::abs(p.y) > 1e6) {
+        ok = false;
+        break;
+      }
+      x0 = std::min(x0, p.x), y0 = std::min(y0, p.y), x1 = std::max(x1, p.x),
+      y1 = std::max(y1, p.y);
+    }
+    if (ok) {
+      const int ix0 = std::max(0, static_cast<int>(std::floor(x0)) - 2);
+      const int iy0 = std::max(0, static_cast<int>(std::floor(y0)) - 2);
+      const int ix1 = std::min(s.model.width(), static_cast<int>(std::ceil(x1)) + 3);
+      const int iy1 = std::min(s.model.height(), static_cast<int>(std::ceil(y1)) + 3);
+      roi = ix1 > ix0 && iy1 > iy0 ? cv::Rect(ix0, iy0, ix1 - ix0, iy1 - iy0) : cv::Rect();
+    }
+  }
+
+  s.pixels.create(s.model.size(), CV_8UC2);
+  s.pixels.setTo(cv::Scalar(0, 0));
+  if (!roi.empty()) {
+    const cv::Rect sroi(roi.x * n, roi.y * n, roi.width * n, roi.height * n);
+    const int W = sroi.width, Hh = sroi.height;
+    s.map.create(Hh, W, CV_32FC2);
+    for (int i = 0; i < Hh; ++i) {
+      const float* ray = s.rays.ptr<float>(sroi.y + i) + 2 * sroi.x;
+      float* out = s.map.ptr<float>(i);
+      for (int j = 0; j < W; ++j) {
+        const float x = ray[2 * j], y = ray[2 * j + 1];
+        const float w = M(2, 0) * x + M(2, 1) * y + M(2, 2);
+        // w > 0: the ray meets the board plane in front of the camera (NaN rays fail the test).
+        const bool front = w > 1e-9f;
+        const float inv = front ? 1.0f / w : 0.0f;
+        out[2 * j] = front ? (M(0, 0) * x + M(0, 1) * y + M(0, 2)) * inv : -1e6f;
+        out[2 * j + 1] = front ? (M(1, 0) * x + M(1, 1) * y + M(1, 2)) * inv : -1e6f;
+      }
+    }
+    cv::remap(s.levels[level], s.sampled, s.map, cv::noArray(), cv::INTER_LINEAR,
+              cv::BORDER_CONSTANT, cv::Scalar(0, 0));
+    cv::Mat dst = s.pixels(roi);
+    if (n > 1) {
+      cv::resize(s.sampled, dst, roi.size(), 0, 0, cv::INTER_AREA);
+    } else {
+      s.sampled.copyTo(dst);
+    }
+  }
+
+  // Composite: premultiplied albedo a_p and coverage c (both 0..255) over the background.
+  cv::Mat img(s.model.size(), CV_32F);
+  const float ink = static_cast<float>(o.ink_black),
+              span = static_cast<float>(o.paper_white - o.ink_black);
+  const float expo = static_cast<float>(o.exposure);
+  for (int i = 0; i < img.rows; ++i) {
+    const uchar* px = s.pixels.ptr<uchar>(i);
+    const float* bg = s.background.ptr<float>(i);
+    float* out = img.ptr<float>(i);
+    for (int j = 0; j < img.cols; ++j) {
+      const float ap = px[2 * j] * (1.0f / 255.0f), c = px[2 * j + 1] * (1.0f / 255.0f);
+      out[j] = expo * (c * ink + span * ap + (1.0f - c) * bg[j]);
+    }
+  }
+  if (o.blur_sigma_px > 0) cv::GaussianBlur(img, img, cv::Size(0, 0), o.blur_sigma_px);
+  if (o.noise_sigma > 0) {
+    cv::RNG rng(mix(o.seed * 0x100000001b3ull + frame_index));
+    cv::Mat noise(img.size(), CV_32F);
+    rng.fill(noise, cv::RNG::NORMAL, 0.0, o.noise_sigma);
+    img += noise;
+  }
+  cv::Mat out8;
+  img.convertTo(out8, CV_8U);  // rounds and saturates
+  return out8;
+}
+
+}  // namespace posecal
