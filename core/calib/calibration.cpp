@@ -40,10 +40,10 @@ bool CalibrationOptions::is_valid(std::string* error) const {
 
 namespace {
 
-// Reprojection residual of one board point (paper eq. 3): pi(P; R, t, C) - p.
-template <int N>
+// Reprojection residual of one board point (paper eq. 3): pi(P; R, t, C) - p, lens model M.
+template <class M>
 struct ReprojectionCost {
-  LensModel model;
+  static constexpr int N = kNumParamsOf<M>;
   double u, v;
   double X, Y, Z;
   double aspect;  // > 0: fy is fx * aspect (fixed aspect ratio)
@@ -61,7 +61,7 @@ struct ReprojectionCost {
     for (int i = 0; i < N; ++i) params[i] = intrinsics[i];
     if (aspect > 0) params[1] = params[0] * T(aspect);
     T uv[2];
-    project_generic(model, params, pc, uv);
+    project_with<M>(params, pc, uv);
     residual[0] = uv[0] - T(u);
     residual[1] = uv[1] - T(v);
     return true;
@@ -70,12 +70,10 @@ struct ReprojectionCost {
 
 ceres::CostFunction* make_cost(LensModel model, const cv::Point2d& p, const cv::Point3d& P,
                                double aspect) {
-  switch (model) {
-    case LensModel::kOpenCV5:
-      return new ceres::AutoDiffCostFunction<ReprojectionCost<9>, 2, 9, 6>(
-          new ReprojectionCost<9>{model, p.x, p.y, P.x, P.y, P.z, aspect});
-  }
-  throw Error(ErrorCode::kInternal, "no cost function for lens model");
+  return with_lens_model(model, [&](auto m) -> ceres::CostFunction* {
+    using Cost = ReprojectionCost<decltype(m)>;
+    return new ceres::AutoDiffCostFunction<Cost, 2, Cost::N, 6>(new Cost{p.x, p.y, P.x, P.y, P.z, aspect});
+  });
 }
 
 void check_frames(const std::vector<Observation>& frames) {
@@ -108,7 +106,7 @@ void check_frames(const std::vector<Observation>& frames) {
 
 // Zhang's method as OpenCV implements it, pinhole only (distortion held at zero): a stable start
 // for the full bundle adjustment, which then frees the distortion.
-bool zhang_initial(const std::vector<Observation>& frames, cv::Size size, bool fix_pp,
+bool zhang_initial(const std::vector<Observation>& frames, cv::Size size, LensModel lens, bool fix_pp,
                    bool fix_aspect, CameraModel* model, std::vector<Pose>* poses) {
   std::vector<std::vector<cv::Point3f>> obj;
   std::vector<std::vector<cv::Point2f>> img;
@@ -139,8 +137,8 @@ bool zhang_initial(const std::vector<Observation>& frames, cv::Size size, bool f
     return false;
   }
   if (!cv::checkRange(K) || K.at<double>(0, 0) <= 0 || K.at<double>(1, 1) <= 0) return false;
-  *model = CameraModel::opencv5(size.width, size.height, K.at<double>(0, 0), K.at<double>(1, 1),
-                                K.at<double>(0, 2), K.at<double>(1, 2), {0, 0, 0, 0, 0});
+  *model = CameraModel::pinhole(lens, size.width, size.height, K.at<double>(0, 0), K.at<double>(1, 1),
+                                K.at<double>(0, 2), K.at<double>(1, 2));
   poses->clear();
   for (size_t i = 0; i < rvecs.size(); ++i) {
     Pose p;
@@ -290,7 +288,7 @@ CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size ima
       poses.push_back(p);
     }
   } else {
-    if (!zhang_initial(frames, image_size, options.fix_principal_point, options.fix_aspect_ratio,
+    if (!zhang_initial(frames, image_size, lens, options.fix_principal_point, options.fix_aspect_ratio,
                        &model, &poses)) {
       throw Error(ErrorCode::kDegenerate,
                   "calibration: no initial solution (Zhang's method failed): the views do not "
@@ -493,329 +491,6 @@ CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size ima
   res.solve_ms =
       std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
   return res;
-}
-
-namespace {
-
-// Projection of a camera-frame point under the OpenCV 5-coefficient model (project_generic) with
-// its derivatives: Jc = d(u, v)/d(p_cam) and Ji = d(u, v)/d(fx fy cx cy k1 k2 p1 p2 k3), a 2x9
-// column-major array (Eigen's layout). By hand, a few times faster than forward-mode Jets;
-// tests compare frame_information() with central differences.
-[[gnu::always_inline]] inline void opencv5_jacobians(const double* q, const Eigen::Vector3d& pc, double* u, double* v,
-                       Eigen::Matrix<double, 2, 3>* Jc, double* Ji) {
-  const double fx = q[0], fy = q[1], k1 = q[4], k2 = q[5], p1 = q[6], p2 = q[7], k3 = q[8];
-  const double iz = 1.0 / pc.z();
-  const double x = pc.x() * iz, y = pc.y() * iz;
-  const double x2 = x * x, y2 = y * y, xy = x * y, r2 = x2 + y2, r4 = r2 * r2, r6 = r4 * r2;
-  const double radial = 1 + k1 * r2 + k2 * r4 + k3 * r6;
-  const double dradial = k1 + 2 * k2 * r2 + 3 * k3 * r4;  // d radial / d r2
-  const double xd = x * radial + 2 * p1 * xy + p2 * (r2 + 2 * x2);
-  const double yd = y * radial + p1 * (r2 + 2 * y2) + 2 * p2 * xy;
-  *u = fx * xd + q[2];
-  *v = fy * yd + q[3];
-  // d(xd, yd)/d(x, y)
-  const double a = radial + 2 * x2 * dradial + 2 * p1 * y + 6 * p2 * x;
-  const double b = 2 * xy * dradial + 2 * p1 * x + 2 * p2 * y;
-  const double d = radial + 2 * y2 * dradial + 6 * p1 * y + 2 * p2 * x;
-  // d(x, y)/d(p_cam) = [[1/z, 0, -x/z], [0, 1/z, -y/z]]
-  (*Jc)(0, 0) = fx * a * iz, (*Jc)(0, 1) = fx * b * iz, (*Jc)(0, 2) = -fx * (a * x + b * y) * iz;
-  (*Jc)(1, 0) = fy * b * iz, (*Jc)(1, 1) = fy * d * iz, (*Jc)(1, 2) = -fy * (b * x + d * y) * iz;
-  // Column-major 2x9: element (r, k) at Ji[2 k + r].
-  const double J[2][9] = {{xd, 0, 1, 0, fx * x * r2, fx * x * r4, fx * 2 * xy, fx * (r2 + 2 * x2), fx * x * r6},
-                          {0, yd, 0, 1, fy * y * r2, fy * y * r4, fy * (r2 + 2 * y2), fy * 2 * xy, fy * y * r6}};
-  for (int k = 0; k < 9; ++k) Ji[2 * k] = J[0][k], Ji[2 * k + 1] = J[1][k];
-}
-
-// frame_information() for models with at most kNParams intrinsics. The pose enters through a
-// left perturbation of the board points in the camera frame, d(p_cam) = [-[R P]x | I] (dw, dt):
-// the Schur complement onto the intrinsics does not depend on how the eliminated pose is
-// parametrised, so this equals the complement for the rotation vector, without differentiating
-// the rotation. Forward-mode derivatives only over p_cam and the intrinsics.
-// `weights` (optional, one per point) scales each point's contribution. Returns false (S
-// untouched) if the pose is unobservable from the points in view.
-template <int kNParams>
-[[gnu::always_inline]] inline bool frame_information_full(const CameraModel& model, const Eigen::Matrix3d& R, const Eigen::Vector3d& t,
-                            const std::vector<cv::Point3d>& board_points, const double* weights,
-                            Eigen::Matrix<double, kNParams, kNParams>* S) {
-  using Jet = ceres::Jet<double, 3 + kNParams>;
-  using MatA = Eigen::Matrix<double, kNParams, kNParams>;
-  using MatB = Eigen::Matrix<double, kNParams, 6>;
-  const int n = model.num_params();
-  MatA A = MatA::Zero();
-  MatB B = MatB::Zero();
-  Eigen::Matrix<double, 6, 6> D = Eigen::Matrix<double, 6, 6>::Zero();
-  const bool analytic = model.lens_model() == LensModel::kOpenCV5 && kNParams == 9;
-  Jet intr[kNParams];
-  if (!analytic)
-    for (int i = 0; i < n; ++i) intr[i] = Jet(model.params()[i], 3 + i);
-  Eigen::Matrix<double, 2, kNParams> Ji = Eigen::Matrix<double, 2, kNParams>::Zero();
-  Eigen::Matrix<double, 2, 3> Jc;
-  Eigen::Matrix<double, 3, 6> dpc = Eigen::Matrix<double, 3, 6>::Zero();
-  dpc.template rightCols<3>().setIdentity();
-  double M[15][15] = {};  // kNParams == 9: [A B; B^T D], upper triangle
-  for (size_t p = 0; p < board_points.size(); ++p) {
-    const cv::Point3d& P = board_points[p];
-    const Eigen::Vector3d RP = R * Eigen::Vector3d(P.x, P.y, P.z);
-    const Eigen::Vector3d pc = RP + t;
-    if (!(pc.z() > 1e-9)) continue;
-    double u, v;
-    if (analytic) {
-      opencv5_jacobians(model.params().data(), pc, &u, &v, &Jc, Ji.data());
-    } else {
-      const Jet jpc[3] = {Jet(pc.x(), 0), Jet(pc.y(), 1), Jet(pc.z(), 2)};
-      Jet uv[2];
-      project_generic(model.lens_model(), intr, jpc, uv);
-      u = uv[0].a, v = uv[1].a;
-      for (int r = 0; r < 2; ++r) {
-        for (int k = 0; k < 3; ++k) Jc(r, k) = uv[r].v[k];
-        for (int k = 0; k < n; ++k) Ji(r, k) = uv[r].v[3 + k];
-      }
-    }
-    if (!(u >= -0.5 && u <= model.width() - 0.5 && v >= -0.5 && v <= model.height() - 0.5)) {
-      continue;  // not observed
-    }
-    // d(R P)/dw for R <- exp([w]x) R is -[R P]x.
-    dpc(0, 1) = RP.z(), dpc(0, 2) = -RP.y();
-    dpc(1, 0) = -RP.z(), dpc(1, 2) = RP.x();
-    dpc(2, 0) = RP.y(), dpc(2, 1) = -RP.x();
-    Eigen::Matrix<double, 2, 6> Jp = Jc * dpc;
-    if (weights) {
-      const double sw = std::sqrt(weights[p]);
-      Ji *= sw;
-      Jp *= sw;
-    }
-    if (kNParams == 9) {
-      // [Ji | Jp] into the upper triangle of a 15x15 sum: symmetric, half the work.
-      double J0[15], J1[15];
-      for (int k = 0; k < kNParams; ++k) J0[k] = Ji(0, k), J1[k] = Ji(1, k);
-      for (int k = 0; k < 6; ++k) J0[kNParams + k] = Jp(0, k), J1[kNParams + k] = Jp(1, k);
-      for (int a = 0; a < 15; ++a)
-        for (int b = a; b < 15; ++b) M[a][b] += J0[a] * J0[b] + J1[a] * J1[b];
-      continue;
-    }
-    // Coefficient-based products: for these sizes Eigen would otherwise call its GEMM kernel,
-    // several times slower here.
-    A.noalias() += Ji.transpose().lazyProduct(Ji);
-    B.noalias() += Ji.transpose().lazyProduct(Jp);
-    D.noalias() += Jp.transpose().lazyProduct(Jp);
-  }
-  if (kNParams == 9) {
-    for (int a = 0; a < 15; ++a) {
-      for (int b = a; b < 15; ++b) {
-        if (b < kNParams) {
-          A(a, b) = A(b, a) = M[a][b];
-        } else if (a < kNParams) {
-          B(a, b - kNParams) = M[a][b];
-        } else {
-          D(a - kNParams, b - kNParams) = D(b - kNParams, a - kNParams) = M[a][b];
-        }
-      }
-    }
-  }
-  if (!(D.trace() > 0)) return false;
-  // S = A - B D^-1 B^T, by D = L L^T and X = L^-1 B^T: S = A - X^T X.
-  const Eigen::LLT<Eigen::Matrix<double, 6, 6>> llt(D);
-  if (llt.info() == Eigen::Success) {
-    const Eigen::Matrix<double, 6, kNParams> X = llt.matrixL().solve(B.transpose());
-    *S = A - X.transpose().lazyProduct(X);
-    return true;
-  }
-  const Eigen::LDLT<Eigen::Matrix<double, 6, 6>> ldlt(D);  // semi-definite: few points in view
-  if (ldlt.info() != Eigen::Success) return false;
-  const MatB BDinv = ldlt.solve(B.transpose()).transpose();
-  *S = A - BDinv.lazyProduct(B.transpose());
-  return true;
-}
-
-// The 9-intrinsic instance, compiled twice: for x86-64-v3 CPUs (AVX2, FMA; chosen at load time where
-// available: the accumulation over points is most of the cost of screening view candidates) and
-// for the baseline.
-__attribute__((target_clones("arch=x86-64-v3", "default"))) bool frame_information_full9(
-    const CameraModel& model, const Eigen::Matrix3d& R, const Eigen::Vector3d& t,
-    const std::vector<cv::Point3d>& board_points, const double* weights, Eigen::Matrix<double, 9, 9>* S) {
-  return frame_information_full<9>(model, R, t, board_points, weights, S);
-}
-
-template <int kNParams>
-Eigen::MatrixXd frame_information_impl(const CameraModel& model, const Pose& T_cam_board,
-                                       const std::vector<cv::Point3d>& board_points,
-                                       const std::vector<bool>& fixed) {
-  // Keep the free parameters, in order.
-  std::vector<int> free_idx;
-  for (int i = 0; i < model.num_params(); ++i)
-    if (!fixed[i]) free_idx.push_back(i);
-  const int m = static_cast<int>(free_idx.size());
-  Eigen::Matrix<double, kNParams, kNParams> S;
-  bool seen;
-  if constexpr (kNParams == 9) {
-    seen = frame_information_full9(model, T_cam_board.R(), T_cam_board.t, board_points, nullptr, &S);
-  } else {
-    seen = frame_information_full<kNParams>(model, T_cam_board.R(), T_cam_board.t, board_points, nullptr, &S);
-  }
-  if (!seen) {
-    return Eigen::MatrixXd::Zero(m, m);
-  }
-  Eigen::MatrixXd out(m, m);
-  for (int a = 0; a < m; ++a)
-    for (int b = 0; b < m; ++b) out(a, b) = S(free_idx[a], free_idx[b]);
-  return out;
-}
-
-}  // namespace
-
-Eigen::MatrixXd frame_information(const CameraModel& model, const Pose& T_cam_board,
-                                  const std::vector<cv::Point3d>& board_points,
-                                  const std::vector<bool>& fixed) {
-  const int n = model.num_params();
-  if (static_cast<int>(fixed.size()) != n) throw Error(ErrorCode::kInvalidArgument, "frame_information: fixed size");
-  if (n <= 9) return frame_information_impl<9>(model, T_cam_board, board_points, fixed);
-  return frame_information_impl<kMaxIntrinsics>(model, T_cam_board, board_points, fixed);
-}
-
-Eigen::MatrixXd frame_information(const CameraModel& model, const Pose& T_cam_board,
-                                  const std::vector<cv::Point3d>& board_points,
-                                  const std::vector<double>& weights, const std::vector<bool>& fixed) {
-  const int n = model.num_params();
-  if (static_cast<int>(fixed.size()) != n) throw Error(ErrorCode::kInvalidArgument, "frame_information: fixed size");
-  if (weights.size() != board_points.size()) throw Error(ErrorCode::kInvalidArgument, "frame_information: one weight per point");
-  if (n > 9) throw Error(ErrorCode::kInvalidArgument, "frame_information: weighted points need at most 9 intrinsics");
-  for (double w : weights)
-    if (!(w >= 0 && std::isfinite(w))) throw Error(ErrorCode::kInvalidArgument, "frame_information: weights must be finite and >= 0");
-  std::vector<int> free_idx;
-  for (int i = 0; i < n; ++i)
-    if (!fixed[i]) free_idx.push_back(i);
-  const int m = static_cast<int>(free_idx.size());
-  Eigen::Matrix<double, 9, 9> S;
-  if (!frame_information_full9(model, T_cam_board.R(), T_cam_board.t, board_points, weights.data(), &S)) {
-    return Eigen::MatrixXd::Zero(m, m);
-  }
-  Eigen::MatrixXd out(m, m);
-  for (int a = 0; a < m; ++a)
-    for (int b = 0; b < m; ++b) out(a, b) = S(free_idx[a], free_idx[b]);
-  return out;
-}
-
-bool frame_information_all9(const CameraModel& model, const Eigen::Matrix3d& R_cam_board, const Eigen::Vector3d& t_cam_board,
-                            const std::vector<cv::Point3d>& board_points, const double* weights,
-                            Eigen::Matrix<double, 9, 9>* S) {
-  if (model.num_params() > 9) throw Error(ErrorCode::kInvalidArgument, "frame_information_all9: more than 9 intrinsics");
-  return frame_information_full9(model, R_cam_board, t_cam_board, board_points, weights, S);
-}
-
-namespace {
-
-// Nodes (offsets from the mean, in units of the spacing) and weights of the `nodes`-point Gauss
-// rule for the n equally spaced values 0 .. n-1: it matches their moments up to degree
-// 2 nodes - 1 (sigma^2 = (n^2-1)/12, fourth central moment (n^2-1)(3n^2-7)/240).
-void discrete_gauss(int n, int nodes, std::vector<double>* x, std::vector<double>* w) {
-  const double nn = n;
-  const double var = (nn * nn - 1) / 12.0;
-  if (nodes == 2) {
-    *x = {-std::sqrt(var), std::sqrt(var)};
-    *w = {nn / 2, nn / 2};
-    return;
-  }
-  const double mu4 = (nn * nn - 1) * (3 * nn * nn - 7) / 240.0;
-  const double a = std::sqrt(mu4 / var), w1 = nn * var * var / (2 * mu4);
-  *x = {-a, 0.0, a};
-  *w = {w1, nn - 2 * w1, w1};
-}
-
-// Sorted distinct values of v (within tol); false unless they are equally spaced.
-bool regular_values(std::vector<double> v, double tol, std::vector<double>* out) {
-  std::sort(v.begin(), v.end());
-  out->clear();
-  for (double x : v)
-    if (out->empty() || x - out->back() > tol) out->push_back(x);
-  if (out->size() < 2) return true;
-  const double h = ((*out)[out->size() - 1] - (*out)[0]) / static_cast<double>(out->size() - 1);
-  for (size_t i = 0; i < out->size(); ++i)
-    if (std::abs((*out)[i] - ((*out)[0] + h * static_cast<double>(i))) > tol) return false;
-  return true;
-}
-
-}  // namespace
-
-void corner_quadrature(const std::vector<cv::Point3d>& corners, int nodes_x, int nodes_y, std::vector<cv::Point3d>* points,
-                       std::vector<double>* weights) {
-  for (int nodes : {nodes_x, nodes_y})
-    if (nodes != 2 && nodes != 3) throw Error(ErrorCode::kInvalidArgument, "corner_quadrature: nodes must be 2 or 3");
-  *points = corners;
-  weights->assign(corners.size(), 1.0);
-  if (corners.empty()) return;
-  double extent = 0;
-  std::vector<double> xs, ys;
-  for (const cv::Point3d& c : corners) {
-    extent = std::max({extent, std::abs(c.x), std::abs(c.y)});
-    xs.push_back(c.x);
-    ys.push_back(c.y);
-    if (c.z != corners[0].z) return;
-  }
-  const double tol = 1e-9 * std::max(extent, 1e-12);
-  std::vector<double> ux, uy;
-  if (!regular_values(xs, tol, &ux) || !regular_values(ys, tol, &uy)) return;
-  const int nx = static_cast<int>(ux.size()), ny = static_cast<int>(uy.size());
-  if (nx <= nodes_x || ny <= nodes_y || static_cast<size_t>(nx) * ny != corners.size()) return;
-  std::set<std::pair<long long, long long>> cells;  // every grid cell taken exactly once
-  const double hx = (ux.back() - ux.front()) / (nx - 1), hy = (uy.back() - uy.front()) / (ny - 1);
-  for (const cv::Point3d& c : corners) cells.emplace(std::llround((c.x - ux[0]) / hx), std::llround((c.y - uy[0]) / hy));
-  if (cells.size() != corners.size()) return;
-  std::vector<double> gx, wx, gy, wy;
-  discrete_gauss(nx, nodes_x, &gx, &wx);
-  discrete_gauss(ny, nodes_y, &gy, &wy);
-  const double mx = 0.5 * (ux.front() + ux.back()), my = 0.5 * (uy.front() + uy.back());
-  points->clear();
-  weights->clear();
-  for (int j = 0; j < nodes_y; ++j) {
-    for (int i = 0; i < nodes_x; ++i) {
-      points->emplace_back(mx + gx[i] * hx, my + gy[j] * hy, corners[0].z);
-      weights->push_back(wx[i] * wy[j]);
-    }
-  }
-}
-
-Eigen::MatrixXd intrinsics_information(const CalibrationResult& result) {
-  std::vector<int> free_idx;
-  for (size_t i = 0; i < result.fixed.size(); ++i)
-    if (!result.fixed[i]) free_idx.push_back(static_cast<int>(i));
-  const int m = static_cast<int>(free_idx.size());
-  Eigen::MatrixXd C(m, m);
-  for (int a = 0; a < m; ++a)
-    for (int b = 0; b < m; ++b) C(a, b) = result.covariance(free_idx[a], free_idx[b]);
-  return C.ldlt().solve(Eigen::MatrixXd::Identity(m, m));
-}
-
-Eigen::MatrixXd projection_gram(const CameraModel& model, const std::vector<bool>& fixed, int cols, int rows) {
-  const int n = model.num_params();
-  if (static_cast<int>(fixed.size()) != n) throw Error(ErrorCode::kInvalidArgument, "projection_gram: fixed size");
-  if (cols < 1 || rows < 1) throw Error(ErrorCode::kInvalidArgument, "projection_gram: grid must be >= 1x1");
-  std::vector<int> free_idx;
-  for (int i = 0; i < n; ++i)
-    if (!fixed[i]) free_idx.push_back(i);
-  const int m = static_cast<int>(free_idx.size());
-  Eigen::MatrixXd G = Eigen::MatrixXd::Zero(m, m);
-  Eigen::MatrixXd Jf(2, m);
-  int count = 0;
-  for (int j = 0; j < rows; ++j) {
-    for (int i = 0; i < cols; ++i) {
-      const Eigen::Vector2d p((i + 0.5) * model.width() / cols - 0.5, (j + 0.5) * model.height() / rows - 0.5);
-      Eigen::Vector2d xn, uv;
-      Eigen::Matrix<double, 2, Eigen::Dynamic> J;
-      if (!model.unproject(p, &xn)) continue;
-      if (model.lens_model() == LensModel::kOpenCV5 && n == 9) {
-        Eigen::Matrix<double, 2, 3> Jc;
-        J.resize(2, 9);
-        opencv5_jacobians(model.params().data(), Eigen::Vector3d(xn.x(), xn.y(), 1.0), &uv.x(), &uv.y(), &Jc, J.data());
-      } else if (!model.project(Eigen::Vector3d(xn.x(), xn.y(), 1.0), &uv, nullptr, &J)) {
-        continue;
-      }
-      for (int k = 0; k < m; ++k) Jf.col(k) = J.col(free_idx[k]);
-      G.noalias() += Jf.transpose() * Jf;
-      ++count;
-    }
-  }
-  if (count > 0) G /= count;
-  return G;
 }
 
 }  // namespace posecal

@@ -9,6 +9,7 @@
 #include <random>
 #include <opencv2/imgproc.hpp>
 
+#include "calib/information.hpp"
 #include "common/error.hpp"
 #include "select/view_candidates.hpp"
 #include "board/views.hpp"
@@ -156,8 +157,8 @@ struct CalibrationEngine::Impl {
   Impl(cv::Size s, const EngineOptions& o)
       : size(s), opt(o), board(o.target), posegen(board, s, o.posegen) {
     const double f = o.initial_focal_guess > 0 ? o.initial_focal_guess : std::max(s.width, s.height);
-    estimate = CameraModel::opencv5(s.width, s.height, f, f, (s.width - 1) * 0.5, (s.height - 1) * 0.5,
-                                    {0, 0, 0, 0, 0});
+    estimate = CameraModel::pinhole(o.calibration.lens_model, s.width, s.height, f, f, (s.width - 1) * 0.5,
+                                    (s.height - 1) * 0.5);
     const int n = estimate.num_params();
     param_converged.assign(n, false);
     param_targeted.assign(n, 0);

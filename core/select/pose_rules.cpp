@@ -24,7 +24,6 @@ std::string fmt(double v, int prec = 3) {
 }
 }  // namespace
 
-ParamGroup param_group(int i) { return i < kNumPinholeParams ? ParamGroup::kPinhole : ParamGroup::kDistortion; }
 
 double binary_subdivision(int n) {
   if (n < 0) throw Error(ErrorCode::kInvalidArgument, "binary_subdivision: n < 0");

@@ -12,10 +12,6 @@
 
 namespace posecal {
 
-// Intrinsic groups (paper §3.1): C_K = [fx, fy, cx, cy], C_Delta = distortion.
-enum class ParamGroup { kPinhole, kDistortion };
-ParamGroup param_group(int param_index);
-
 // Binary subdivision of (0, 1): 0.25, 0.75, 0.125, 0.375, 0.625, 0.875, 0.0625, ...
 // (paper §3.3, step 2). Stateless: returns the n-th element (n >= 0).
 double binary_subdivision(int n);

@@ -5,7 +5,7 @@
 
 #include <Eigen/Cholesky>
 
-#include "calib/calibration.hpp"
+#include "calib/information.hpp"
 #include "common/error.hpp"
 
 namespace posecal {
@@ -22,28 +22,27 @@ CovariancePrediction predict_covariance(const Eigen::MatrixXd& information, cons
 
 namespace {
 
-// At most 9 free intrinsics, without heap allocations.
-using Small = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, 0, 9, 9>;
-
-// Variances and trace(G info^-1) of a positive definite 9x9 information matrix by a plain
+// Variances and trace(G info^-1) of a positive definite N x N information matrix by a plain
 // Cholesky factorisation, info = L L^T, and L^-1: cov = L^-T L^-1, trace(G cov) = sum of the
 // rows l_k of L^-1 of l_k G l_k^T. False (nothing written) if info is not numerically positive
 // definite; the caller falls back to LDLT.
-bool predict9(const Eigen::Matrix<double, 9, 9>& info, const Eigen::Matrix<double, 9, 9>* G, CovariancePrediction* p) {
-  double L[9][9] = {}, Li[9][9] = {};
-  for (int j = 0; j < 9; ++j) {
+template <int N>
+bool predict_cholesky(const Eigen::Matrix<double, N, N>& info, const Eigen::Matrix<double, N, N>* G,
+                      CovariancePrediction* p) {
+  double L[N][N] = {}, Li[N][N] = {};
+  for (int j = 0; j < N; ++j) {
     double d = info(j, j);
     for (int k = 0; k < j; ++k) d -= L[j][k] * L[j][k];
     if (!(d > 1e-300 * std::max(1.0, std::abs(info(j, j))))) return false;
     const double ljj = std::sqrt(d);
     L[j][j] = ljj;
-    for (int i = j + 1; i < 9; ++i) {
+    for (int i = j + 1; i < N; ++i) {
       double v = info(i, j);
       for (int k = 0; k < j; ++k) v -= L[i][k] * L[j][k];
       L[i][j] = v / ljj;
     }
   }
-  for (int i = 0; i < 9; ++i) {  // L^-1, lower triangular, row by row
+  for (int i = 0; i < N; ++i) {  // L^-1, lower triangular, row by row
     Li[i][i] = 1.0 / L[i][i];
     for (int j = 0; j < i; ++j) {
       double v = 0;
@@ -51,16 +50,16 @@ bool predict9(const Eigen::Matrix<double, 9, 9>& info, const Eigen::Matrix<doubl
       Li[i][j] = v / L[i][i];
     }
   }
-  p->variance.resize(9);
-  for (int c = 0; c < 9; ++c) {
+  p->variance.resize(N);
+  for (int c = 0; c < N; ++c) {
     double v = 0;
-    for (int k = c; k < 9; ++k) v += Li[k][c] * Li[k][c];
+    for (int k = c; k < N; ++k) v += Li[k][c] * Li[k][c];
     p->variance(c) = v;
   }
   p->projection = 0;
   if (G) {
     double tr = 0;
-    for (int k = 0; k < 9; ++k) {
+    for (int k = 0; k < N; ++k) {
       for (int a = 0; a <= k; ++a) {
         double ga = 0;
         for (int b = 0; b <= k; ++b) ga += (*G)(a, b) * Li[k][b];
@@ -74,28 +73,26 @@ bool predict9(const Eigen::Matrix<double, 9, 9>& info, const Eigen::Matrix<doubl
 
 }  // namespace
 
-CovariancePrediction ViewCandidates::predict(const Eigen::Matrix3d& R, const Eigen::Vector3d& t,
-                                             const std::vector<cv::Point3d>& points,
-                                             const std::vector<double>* weights) const {
+template <int N>
+CovariancePrediction ViewCandidates::predict_fixed(const Eigen::Matrix3d& R, const Eigen::Vector3d& t,
+                                                   const std::vector<cv::Point3d>& points,
+                                                   const std::vector<double>* weights) const {
   const int m = static_cast<int>(information_.rows());
-  if (estimate_.num_params() > 9) {
-    const Pose T = Pose::from_rotation(R, t);
-    return predict_covariance(information_, gram_,
-                              weights ? frame_information(estimate_, T, points, *weights, fixed_)
-                                      : frame_information(estimate_, T, points, fixed_));
-  }
-  Eigen::Matrix<double, 9, 9> S;
-  const bool seen = frame_information_all9(estimate_, R, t, points, weights ? weights->data() : nullptr, &S);
+  IntrinsicsMatrix S;
+  const bool seen = frame_information_all(estimate_, R, t, points, weights ? weights->data() : nullptr, &S);
   CovariancePrediction p;
-  if (m == 9) {  // every intrinsic free: fixed sizes throughout
-    Eigen::Matrix<double, 9, 9> info = information9_;
+  if (m == N) {  // every intrinsic free: fixed sizes throughout
+    using Full = Eigen::Matrix<double, N, N>;
+    Full info = information_;
     if (seen) info += S;
-    if (predict9(info, gram_.size() ? &gram9_ : nullptr, &p)) return p;
-    const Eigen::Matrix<double, 9, 9> cov = info.ldlt().solve(Eigen::Matrix<double, 9, 9>::Identity());
+    const Full G = gram_.size() ? Full(gram_) : Full::Zero();
+    if (predict_cholesky<N>(info, gram_.size() ? &G : nullptr, &p)) return p;
+    const Full cov = info.ldlt().solve(Full::Identity());
     p.variance = cov.diagonal();
-    if (gram_.size()) p.projection = gram9_.cwiseProduct(cov).sum();
+    if (gram_.size()) p.projection = G.cwiseProduct(cov).sum();
     return p;
   }
+  using Small = Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, 0, N, N>;  // no heap allocation
   Small info = information_;
   if (seen) {
     for (int a = 0; a < m; ++a)
@@ -105,6 +102,13 @@ CovariancePrediction ViewCandidates::predict(const Eigen::Matrix3d& R, const Eig
   p.variance = cov.diagonal();
   if (gram_.size()) p.projection = gram_.cwiseProduct(cov).sum();
   return p;
+}
+
+CovariancePrediction ViewCandidates::predict(const Eigen::Matrix3d& R, const Eigen::Vector3d& t,
+                                             const std::vector<cv::Point3d>& points,
+                                             const std::vector<double>* weights) const {
+  return with_lens_model(estimate_.lens_model(),
+                         [&](auto lm) { return predict_fixed<kNumParamsOf<decltype(lm)>>(R, t, points, weights); });
 }
 
 ViewCandidates::ViewCandidates(const CameraModel& estimate, const Target& board, const std::vector<bool>& fixed,
@@ -121,10 +125,6 @@ ViewCandidates::ViewCandidates(const CameraModel& estimate, const Target& board,
   }
   for (int i = 0; i < estimate.num_params(); ++i)
     if (!fixed[i]) free_.push_back(i);
-  if (free == 9) {
-    information9_ = information;
-    if (gram.size()) gram9_ = gram;
-  }
   std::vector<cv::Point3d> qp;
   std::vector<double> qw;
   corner_quadrature(board.corners(), 3, 3, &qp, &qw);

@@ -77,12 +77,15 @@ class ViewCandidates {
   std::vector<size_t> best(int rank_by) const;
   CovariancePrediction predict(const Eigen::Matrix3d& R, const Eigen::Vector3d& t, const std::vector<cv::Point3d>& points,
                                const std::vector<double>* weights) const;
+  // predict() for a lens model with N intrinsics.
+  template <int N>
+  CovariancePrediction predict_fixed(const Eigen::Matrix3d& R, const Eigen::Vector3d& t,
+                                     const std::vector<cv::Point3d>& points, const std::vector<double>* weights) const;
 
   CameraModel estimate_;
   Target board_;
   std::vector<bool> fixed_;
   std::vector<int> free_;  // indices of the free intrinsics
-  Eigen::Matrix<double, 9, 9> information9_, gram9_;  // copies when all 9 are free
   Eigen::MatrixXd information_, gram_;
   ViewCandidateOptions options_;
   std::vector<View> views_;

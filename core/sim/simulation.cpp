@@ -6,6 +6,8 @@
 #include "common/error.hpp"
 #include "calib/metrics.hpp"
 #include "board/views.hpp"
+#include "io/model_file.hpp"
+#include "lens/reference_models.hpp"
 
 namespace posecal {
 

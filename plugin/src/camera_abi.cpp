@@ -12,6 +12,7 @@
 #include "json_report.hpp"
 #include "posecal.h"
 #include "sim/simulation.hpp"
+#include "io/model_file.hpp"
 
 using namespace posecal;
 using posecal::abi::guarded;

@@ -3,6 +3,7 @@
 #include <cmath>
 
 #include "common/error.hpp"
+#include "io/model_file.hpp"
 
 namespace posecal::abi {
 

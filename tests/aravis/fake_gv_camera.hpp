@@ -21,6 +21,7 @@
 
 #include "device/camera.hpp"
 #include "sim/synthetic.hpp"
+#include "lens/reference_models.hpp"
 
 namespace posecal::testing {
 

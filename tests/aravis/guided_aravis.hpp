@@ -10,6 +10,7 @@
 #include "fake_gv_camera.hpp"
 #include "guided_loop.hpp"
 #include "select/engine.hpp"
+#include "lens/reference_models.hpp"
 
 namespace posecal::testing {
 

@@ -12,6 +12,8 @@
 #include "sim/synthetic.hpp"
 #include "select/view_candidates.hpp"
 #include "board/views.hpp"
+#include "lens/reference_models.hpp"
+#include "calib/information.hpp"
 
 using namespace posecal;
 

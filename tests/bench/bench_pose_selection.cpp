@@ -29,6 +29,8 @@
 #include "session/session.hpp"
 #include "sim/simulation.hpp"
 #include "board/views.hpp"
+#include "lens/reference_models.hpp"
+#include "calib/information.hpp"
 
 using namespace posecal;
 

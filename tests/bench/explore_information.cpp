@@ -31,6 +31,8 @@
 #include "sim/simulation.hpp"
 #include "select/view_candidates.hpp"
 #include "board/views.hpp"
+#include "lens/reference_models.hpp"
+#include "calib/information.hpp"
 
 using namespace posecal;
 

@@ -7,6 +7,8 @@
 #include "calib/metrics.hpp"
 #include "sim/synthetic.hpp"
 #include "board/views.hpp"
+#include "lens/reference_models.hpp"
+#include "calib/information.hpp"
 
 using namespace posecal;
 

@@ -7,6 +7,7 @@
 #include "calib/metrics.hpp"
 #include "sim/synthetic.hpp"
 #include "board/views.hpp"
+#include "lens/reference_models.hpp"
 
 using namespace posecal;
 

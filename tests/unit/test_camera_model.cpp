@@ -9,6 +9,8 @@
 
 #include "lens/camera_model.hpp"
 #include "common/error.hpp"
+#include "io/model_file.hpp"
+#include "lens/reference_models.hpp"
 
 using namespace posecal;
 

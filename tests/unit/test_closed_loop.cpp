@@ -12,6 +12,7 @@
 #include "calib/metrics.hpp"
 #include "session/session.hpp"
 #include "sim/simulation.hpp"
+#include "lens/reference_models.hpp"
 
 using namespace posecal;
 

@@ -4,6 +4,7 @@
 #include "common/error.hpp"
 #include "select/pose_rules.hpp"
 #include "board/views.hpp"
+#include "lens/reference_models.hpp"
 
 using namespace posecal;
 

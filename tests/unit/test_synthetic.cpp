@@ -8,6 +8,7 @@
 #include "common/error.hpp"
 #include "sim/synthetic.hpp"
 #include "board/views.hpp"
+#include "lens/reference_models.hpp"
 
 using namespace posecal;
 

@@ -9,6 +9,8 @@
 #include "sim/synthetic.hpp"
 #include "select/view_candidates.hpp"
 #include "board/views.hpp"
+#include "lens/reference_models.hpp"
+#include "calib/information.hpp"
 
 using namespace posecal;
 

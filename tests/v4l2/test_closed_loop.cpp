@@ -14,6 +14,7 @@
 #include "calib/metrics.hpp"
 #include "session/session.hpp"
 #include "rig.hpp"
+#include "lens/reference_models.hpp"
 
 using namespace posecal;
 using posecal::testing::GuidedCamera;
