@@ -67,18 +67,18 @@ double parse_length(const std::string& spec, const std::string& field, const std
 
 }  // namespace
 
-TargetSpec TargetSpec::parse(const std::string& spec) {
+BoardSpec BoardSpec::parse(const std::string& spec) {
   std::vector<std::string> f;
   std::stringstream ss(spec);
   std::string item;
   while (std::getline(ss, item, ':')) f.push_back(item);
   if (f.empty()) bad_spec(spec, "empty; expected e.g. charuco:9x6:0.028:0.0182:DICT_4X4_50");
-  TargetSpec out;
+  BoardSpec out;
   if (f[0] == "charuco") {
-    out.type = TargetType::kCharuco;
+    out.type = BoardType::kCharuco;
     if (f.size() != 5) bad_spec(spec, "expected charuco:COLSxROWS:SQUARE_M:MARKER_M:DICT");
   } else if (f[0] == "chessboard") {
-    out.type = TargetType::kChessboard;
+    out.type = BoardType::kChessboard;
     if (f.size() != 3) bad_spec(spec, "expected chessboard:COLSxROWS:SQUARE_M (inner corners)");
   } else {
     bad_spec(spec, "unknown target type '" + f[0] + "' (charuco or chessboard)");
@@ -91,7 +91,7 @@ TargetSpec TargetSpec::parse(const std::string& spec) {
   out.cols = cols;
   out.rows = rows;
   out.square_length_m = parse_length(spec, "square length", f[2]);
-  if (out.type == TargetType::kCharuco) {
+  if (out.type == BoardType::kCharuco) {
     out.marker_length_m = parse_length(spec, "marker length", f[3]);
     out.dictionary = f[4];
   } else {
@@ -106,12 +106,12 @@ TargetSpec TargetSpec::parse(const std::string& spec) {
   return out;
 }
 
-void TargetSpec::validate() const {
+void BoardSpec::validate() const {
   auto fail = [](const std::string& why) { throw Error(ErrorCode::kInvalidArgument, why); };
   if (cols < 2 || rows < 2 || cols > 100 || rows > 100)
     fail("grid must be between 2x2 and 100x100");
   if (!(square_length_m > 0) || !std::isfinite(square_length_m)) fail("square length must be > 0");
-  if (type == TargetType::kCharuco) {
+  if (type == BoardType::kCharuco) {
     if (cols < 3 && rows < 3) fail("a ChArUco board needs at least 3 squares along one side");
     if (!(marker_length_m > 0) || !(marker_length_m < square_length_m)) {
       fail("marker length must be positive and smaller than the square length");
@@ -127,10 +127,10 @@ void TargetSpec::validate() const {
   }
 }
 
-std::string TargetSpec::to_string() const {
+std::string BoardSpec::to_string() const {
   std::ostringstream os;
   os.precision(10);
-  if (type == TargetType::kCharuco) {
+  if (type == BoardType::kCharuco) {
     os << "charuco:" << cols << "x" << rows << ":" << square_length_m << ":" << marker_length_m
        << ":" << dictionary;
   } else {
@@ -139,17 +139,17 @@ std::string TargetSpec::to_string() const {
   return os.str();
 }
 
-struct Target::Impl {
+struct Board::Impl {
   cv::Ptr<cv::aruco::Dictionary> dictionary;
   cv::Ptr<cv::aruco::CharucoBoard> board;
   cv::Ptr<cv::aruco::DetectorParameters> params;
 };
 
-Target::Target(const TargetSpec& spec) : spec_(spec) {
+Board::Board(const BoardSpec& spec) : spec_(spec) {
   spec_.validate();
   auto impl = std::make_shared<Impl>();
   const double s = spec_.square_length_m;
-  if (spec_.type == TargetType::kCharuco) {
+  if (spec_.type == BoardType::kCharuco) {
     impl->dictionary = cv::aruco::getPredefinedDictionary(dictionary_table().at(spec_.dictionary));
     impl->board = cv::aruco::CharucoBoard::create(
         spec_.cols, spec_.rows, static_cast<float>(spec_.square_length_m),
@@ -166,17 +166,17 @@ Target::Target(const TargetSpec& spec) : spec_(spec) {
   impl_ = impl;
 }
 
-Target::~Target() = default;
-Target::Target(const Target&) = default;
-Target& Target::operator=(const Target&) = default;
+Board::~Board() = default;
+Board::Board(const Board&) = default;
+Board& Board::operator=(const Board&) = default;
 
-cv::Size2d Target::board_size_m() const {
+cv::Size2d Board::board_size_m() const {
   const double s = spec_.square_length_m;
-  if (spec_.type == TargetType::kCharuco) return {spec_.cols * s, spec_.rows * s};
+  if (spec_.type == BoardType::kCharuco) return {spec_.cols * s, spec_.rows * s};
   return {(spec_.cols + 1) * s, (spec_.rows + 1) * s};
 }
 
-std::vector<cv::Point3d> Target::outline() const {
+std::vector<cv::Point3d> Board::outline() const {
   const cv::Size2d sz = board_size_m();
   return {{0, 0, 0}, {sz.width, 0, 0}, {sz.width, sz.height, 0}, {0, sz.height, 0}};
 }
@@ -249,11 +249,11 @@ void refine_charuco_corners(const cv::Mat& gray, int corners_per_row, const std:
 
 }  // namespace
 
-Detection Target::detect(const cv::Mat& image, const DetectorOptions& options) const {
+Detection Board::detect(const cv::Mat& image, const DetectorOptions& options) const {
   const cv::Mat gray = to_gray(image);
   Detection det;
   try {
-    if (spec_.type == TargetType::kChessboard) {
+    if (spec_.type == BoardType::kChessboard) {
       std::vector<cv::Point2f> pts;
       const cv::Size pattern(spec_.cols, spec_.rows);
       const int flags =
@@ -319,20 +319,20 @@ Detection Target::detect(const cv::Mat& image, const DetectorOptions& options) c
   return det;
 }
 
-BoardTexture Target::render(int texels_per_square, double margin_squares) const {
+BoardTexture Board::render(int texels_per_square, double margin_squares) const {
   if (texels_per_square < 4) {
     throw Error(ErrorCode::kInvalidArgument, "render: need at least 4 texels per square");
   }
   const int P = texels_per_square;
   const int margin = static_cast<int>(std::lround(margin_squares * P));
-  const int sq_x = spec_.type == TargetType::kCharuco ? spec_.cols : spec_.cols + 1;
-  const int sq_y = spec_.type == TargetType::kCharuco ? spec_.rows : spec_.rows + 1;
+  const int sq_x = spec_.type == BoardType::kCharuco ? spec_.cols : spec_.cols + 1;
+  const int sq_y = spec_.type == BoardType::kCharuco ? spec_.rows : spec_.rows + 1;
   BoardTexture tex;
   tex.image = cv::Mat(sq_y * P + 2 * margin, sq_x * P + 2 * margin, CV_8U, cv::Scalar(255));
   tex.metres_per_texel = spec_.square_length_m / P;
   tex.margin_m = margin * tex.metres_per_texel;
   cv::Mat inner = tex.image(cv::Rect(margin, margin, sq_x * P, sq_y * P));
-  if (spec_.type == TargetType::kCharuco) {
+  if (spec_.type == BoardType::kCharuco) {
     cv::Mat board;
     impl_->board->draw(cv::Size(sq_x * P, sq_y * P), board, 0, 1);
     board.copyTo(inner);
@@ -366,7 +366,7 @@ void png_set_dpi(std::vector<uchar>& png, double dpi) {
 
 }  // namespace
 
-void Target::write_printable(const std::string& path, double dpi, double margin_m) const {
+void Board::write_printable(const std::string& path, double dpi, double margin_m) const {
   if (!(dpi >= 50 && dpi <= 2400)) {
     throw Error(ErrorCode::kInvalidArgument, "printable target: dpi must be in [50, 2400]");
   }
@@ -391,7 +391,7 @@ void Target::write_printable(const std::string& path, double dpi, double margin_
       content << x << " " << y << " " << w_m * pt_per_m << " " << h_m * pt_per_m << " re f\n";
     };
     const double s = spec_.square_length_m;
-    if (spec_.type == TargetType::kChessboard) {
+    if (spec_.type == BoardType::kChessboard) {
       for (int i = 0; i < spec_.rows + 1; ++i)
         for (int j = 0; j < spec_.cols + 1; ++j)
           if ((i + j) % 2 == 0) rect(j * s, i * s, s, s);

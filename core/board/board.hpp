@@ -15,10 +15,10 @@
 
 namespace posecal {
 
-enum class TargetType { kCharuco, kChessboard };
+enum class BoardType { kCharuco, kChessboard };
 
-struct TargetSpec {
-  TargetType type = TargetType::kCharuco;
+struct BoardSpec {
+  BoardType type = BoardType::kCharuco;
   // ChArUco: number of squares. Chessboard: number of inner corners.
   int cols = 9;
   int rows = 6;
@@ -28,7 +28,7 @@ struct TargetSpec {
 
   // "charuco:9x6:0.028:0.0182:DICT_4X4_50" or "chessboard:9x6:0.025" (inner corners).
   // Throws Error(kInvalidArgument) naming the offending field.
-  static TargetSpec parse(const std::string& spec);
+  static BoardSpec parse(const std::string& spec);
   std::string to_string() const;
   // Throws Error(kInvalidArgument) if inconsistent (marker too large, too few corners...).
   void validate() const;
@@ -62,14 +62,14 @@ struct BoardTexture {
   double margin_m = 0;
 };
 
-class Target {
+class Board {
  public:
-  explicit Target(const TargetSpec& spec = TargetSpec{});
-  ~Target();
-  Target(const Target&);
-  Target& operator=(const Target&);
+  explicit Board(const BoardSpec& spec = BoardSpec{});
+  ~Board();
+  Board(const Board&);
+  Board& operator=(const Board&);
 
-  const TargetSpec& spec() const { return spec_; }
+  const BoardSpec& spec() const { return spec_; }
   // Total number of corners a full detection yields.
   int num_corners() const { return static_cast<int>(corners_.size()); }
   // Board coordinates of every corner, indexed by id.
@@ -93,7 +93,7 @@ class Target {
 
  private:
   struct Impl;
-  TargetSpec spec_;
+  BoardSpec spec_;
   std::vector<cv::Point3d> corners_;
   std::shared_ptr<const Impl> impl_;
 };

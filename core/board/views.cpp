@@ -6,18 +6,18 @@
 
 namespace posecal {
 
-Pose board_pose_at(const Target& target, const Eigen::Vector3d& centre_cam, double tilt_axis_rad,
+Pose board_pose_at(const Board& board, const Eigen::Vector3d& centre_cam, double tilt_axis_rad,
                    double tilt_rad, double roll_rad) {
   const Eigen::Vector3d axis(std::cos(tilt_axis_rad), std::sin(tilt_axis_rad), 0.0);
   const Eigen::Matrix3d R =
       Eigen::AngleAxisd(roll_rad, Eigen::Vector3d::UnitZ()).toRotationMatrix() *
       Eigen::AngleAxisd(tilt_rad, axis).toRotationMatrix();
-  const cv::Size2d bs = target.board_size_m();
+  const cv::Size2d bs = board.board_size_m();
   const Eigen::Vector3d centre_board(bs.width / 2, bs.height / 2, 0.0);
   return Pose::from_rotation(R, centre_cam - R * centre_board);
 }
 
-bool board_fully_visible(const CameraModel& model, const Target& target, const Pose& T_cam_board,
+bool board_fully_visible(const CameraModel& model, const Board& board, const Pose& T_cam_board,
                          double margin_px) {
   // The same points and arithmetic as project_points(), without its allocations: this runs in
   // every distance search of the pose generator and for every view candidate.
@@ -28,12 +28,12 @@ bool board_fully_visible(const CameraModel& model, const Target& target, const P
     return std::isfinite(uv->x()) && std::isfinite(uv->y()) && uv->x() >= margin_px && uv->y() >= margin_px &&
            uv->x() <= model.width() - 1 - margin_px && uv->y() <= model.height() - 1 - margin_px;
   };
-  const std::vector<cv::Point3d> outline = target.outline();
+  const std::vector<cv::Point3d> outline = board.outline();
   // The sheet's four corners and a convex outline first: a cheap early rejection. A board seen
   // almost edge-on, or folded by the distortion model, is no use either.
   if (!board_outline_in_view(model, outline, R, T_cam_board.t, margin_px)) return false;
   Eigen::Vector2d uv;
-  for (const cv::Point3d& c : target.corners())
+  for (const cv::Point3d& c : board.corners())
     if (!project_inside(c, &uv)) return false;
   constexpr int kSteps = 16;
   for (int e = 0; e < 4; ++e) {
@@ -46,10 +46,10 @@ bool board_fully_visible(const CameraModel& model, const Target& target, const P
 }
 
 std::optional<Pose> random_board_view(std::mt19937_64& rng, const CameraModel& model,
-                                      const Target& target, const ViewSampling& s, int* draws) {
+                                      const Board& board, const ViewSampling& s, int* draws) {
   if (draws) *draws = 0;
   std::uniform_real_distribution<double> U(0.0, 1.0);
-  const cv::Size2d bs = target.board_size_m();
+  const cv::Size2d bs = board.board_size_m();
   const double pi = 3.14159265358979323846;
   for (int attempt = 0; attempt < s.max_tries; ++attempt) {
     if (draws) *draws = attempt + 1;
@@ -64,15 +64,15 @@ std::optional<Pose> random_board_view(std::mt19937_64& rng, const CameraModel& m
     const double tilt = s.max_tilt_deg * pi / 180.0 * U(rng);
     const double axis = 2 * pi * U(rng);
     const double roll = (U(rng) - 0.5) * pi / 2;  // +-45 deg
-    const Pose pose = board_pose_at(target, centre, axis, tilt, roll);
-    if (board_fully_visible(model, target, pose, s.margin_px)) return pose;
+    const Pose pose = board_pose_at(board, centre, axis, tilt, roll);
+    if (board_fully_visible(model, board, pose, s.margin_px)) return pose;
   }
   return std::nullopt;
 }
 
-ViewSampler::ViewSampler(const CameraModel& model, const Target& target, const ViewSampling& sampling)
-    : model_(model), s_(sampling), outline_(target.outline()) {
-  const cv::Size2d bs = target.board_size_m();
+ViewSampler::ViewSampler(const CameraModel& model, const Board& board, const ViewSampling& sampling)
+    : model_(model), s_(sampling), outline_(board.outline()) {
+  const cv::Size2d bs = board.board_size_m();
   centre_board_ = Eigen::Vector3d(bs.width / 2, bs.height / 2, 0.0);
   board_width_m_ = bs.width;
   fold_free_r_ = model.fold_free_radius();
@@ -192,11 +192,11 @@ bool ViewSampler::realise(const ViewDraw& view, Eigen::Matrix3d* R_out, Eigen::V
 }
 
 std::vector<Pose> random_board_views(uint64_t seed, int count, const CameraModel& model,
-                                     const Target& target, const ViewSampling& sampling) {
+                                     const Board& board, const ViewSampling& sampling) {
   std::mt19937_64 rng(seed);
   std::vector<Pose> out;
   for (int i = 0; i < count; ++i) {
-    auto p = random_board_view(rng, model, target, sampling);
+    auto p = random_board_view(rng, model, board, sampling);
     if (!p) {
       throw Error(ErrorCode::kInternal,
                   "no fully visible board view found: is the board larger than the view?");
@@ -206,12 +206,12 @@ std::vector<Pose> random_board_views(uint64_t seed, int count, const CameraModel
   return out;
 }
 
-std::vector<Pose> test_set_views(const CameraModel& model, const Target& target, int count) {
+std::vector<Pose> test_set_views(const CameraModel& model, const Board& board, int count) {
   ViewSampling s;
   s.max_tilt_deg = 50;
   s.min_width_fraction = 0.2;
   s.max_width_fraction = 0.8;
-  return random_board_views(0x7e57'5e7ull, count, model, target, s);
+  return random_board_views(0x7e57'5e7ull, count, model, board, s);
 }
 
 }  // namespace posecal

@@ -16,15 +16,15 @@ namespace posecal {
 // Board pose with the board's centre at `centre_cam` (camera frame), rotated from fronto-parallel
 // (R = I: board x to the image's right, y down) by `tilt_rad` about the in-plane axis at angle
 // `tilt_axis_rad` from the image x axis, then rolled by `roll_rad` about the optical axis.
-Pose board_pose_at(const Target& target, const Eigen::Vector3d& centre_cam, double tilt_axis_rad,
+Pose board_pose_at(const Board& board, const Eigen::Vector3d& centre_cam, double tilt_axis_rad,
                    double tilt_rad, double roll_rad);
 
 // True if the whole board (its outline, sampled densely, and every corner) projects inside the
 // image with `margin_px` to spare, in front of the camera.
-bool board_fully_visible(const CameraModel& model, const Target& target, const Pose& T_cam_board,
+bool board_fully_visible(const CameraModel& model, const Board& board, const Pose& T_cam_board,
                          double margin_px = 2.0);
 
-// The cheap part of board_fully_visible(): the four corners of `outline` (Target::outline())
+// The cheap part of board_fully_visible(): the four corners of `outline` (Board::outline())
 // project inside the image with `margin_px` to spare and the projected outline is convex.
 bool board_outline_in_view(const CameraModel& model, const std::vector<cv::Point3d>& outline, const Eigen::Matrix3d& R,
                            const Eigen::Vector3d& t, double margin_px);
@@ -40,7 +40,7 @@ struct ViewSampling {
 // A random view with the board fully visible, or nullopt if none was found in max_tries.
 // `draws` (optional) receives the number of draws it took.
 std::optional<Pose> random_board_view(std::mt19937_64& rng, const CameraModel& model,
-                                      const Target& target, const ViewSampling& sampling = {},
+                                      const Board& board, const ViewSampling& sampling = {},
                                       int* draws = nullptr);
 
 // A board view in terms that do not depend on the intrinsics: the board's width as a fraction
@@ -64,7 +64,7 @@ struct ViewDraw {
 // dense check of board_fully_visible() is left to the caller, for the few views it keeps.
 class ViewSampler {
  public:
-  ViewSampler(const CameraModel& model, const Target& target, const ViewSampling& sampling);
+  ViewSampler(const CameraModel& model, const Board& board, const ViewSampling& sampling);
   // One view, or nullopt after max_tries draws (sampling.max_tries if < 0); `draws` as for
   // random_board_view. A draw counts whether it fails the pinhole fit or realise().
   std::optional<Pose> draw(std::mt19937_64& rng, int* draws = nullptr, int max_tries = -1) const;
@@ -89,10 +89,10 @@ class ViewSampler {
 
 // `count` random views (throws Error(kInternal) if the camera cannot see the board at all).
 std::vector<Pose> random_board_views(uint64_t seed, int count, const CameraModel& model,
-                                     const Target& target, const ViewSampling& sampling = {});
+                                     const Board& board, const ViewSampling& sampling = {});
 
 // The fixed synthetic test set for eps_test: 50 views at various distances (board 20-80% of the
 // image width) and angles (tilt up to 50 deg) covering the whole view. Deterministic.
-std::vector<Pose> test_set_views(const CameraModel& model, const Target& target, int count = 50);
+std::vector<Pose> test_set_views(const CameraModel& model, const Board& board, int count = 50);
 
 }  // namespace posecal

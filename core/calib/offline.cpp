@@ -26,9 +26,9 @@ std::vector<std::string> list_files_sorted(const std::string& dir) {
   return files;
 }
 
-OfflineCalibration calibrate_images(const std::string& dir, const TargetSpec& spec,
+OfflineCalibration calibrate_images(const std::string& dir, const BoardSpec& spec,
                                     const OfflineOptions& options) {
-  const Target target(spec);
+  const Board target(spec);
   OfflineCalibration out;
   cv::Size size;
   for (const std::string& file : list_files_sorted(dir)) {

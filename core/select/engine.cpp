@@ -49,7 +49,7 @@ bool EngineOptions::is_valid(std::string* error) const {
     return false;
   };
   try {
-    target.validate();
+    board.validate();
   } catch (const Error& e) {
     return fail(std::string("target: ") + e.what());
   }
@@ -119,7 +119,7 @@ std::vector<int> ratio_test(const std::vector<double>& var_before, const std::ve
 struct CalibrationEngine::Impl {
   cv::Size size;
   EngineOptions opt;
-  Target board;
+  Board board;
   PoseGenerator posegen;
   std::function<void(const EngineEvent&)> callback;
 
@@ -155,7 +155,7 @@ struct CalibrationEngine::Impl {
   FrameReport last;
 
   Impl(cv::Size s, const EngineOptions& o)
-      : size(s), opt(o), board(o.target), posegen(board, s, o.posegen) {
+      : size(s), opt(o), board(o.board), posegen(board, s, o.posegen) {
     const double f = o.initial_focal_guess > 0 ? o.initial_focal_guess : std::max(s.width, s.height);
     estimate = CameraModel::pinhole(o.calibration.lens_model, s.width, s.height, f, f, (s.width - 1) * 0.5,
                                     (s.height - 1) * 0.5);
@@ -768,7 +768,7 @@ const CameraModel& CalibrationEngine::estimate() const { return impl_->estimate;
 const CalibrationResult* CalibrationEngine::result() const { return impl_->result ? &*impl_->result : nullptr; }
 const std::vector<Observation>& CalibrationEngine::keyframe_observations() const { return impl_->keyframes; }
 const FrameReport& CalibrationEngine::last_report() const { return impl_->last; }
-const Target& CalibrationEngine::board() const { return impl_->board; }
+const Board& CalibrationEngine::board() const { return impl_->board; }
 const EngineOptions& CalibrationEngine::options() const { return impl_->opt; }
 void CalibrationEngine::set_event_callback(std::function<void(const EngineEvent&)> cb) { impl_->callback = std::move(cb); }
 

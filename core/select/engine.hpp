@@ -35,7 +35,7 @@ enum class EngineState {
 const char* engine_state_name(EngineState s);
 
 struct EngineOptions {
-  TargetSpec target;                     // the board
+  BoardSpec board;                     // the board
   double convergence_threshold = 0.1;    // ratio test: relative variance reduction (paper §4.1)
   int max_keyframes = 20;                // cap; reaching it ends the run as not converged
   double constraint_factor = 5.0;        // constraints >= factor x unknowns (paper §4.3)
@@ -189,7 +189,7 @@ class CalibrationEngine {
   std::vector<ParameterStatus> parameters() const;
   const std::vector<Observation>& keyframe_observations() const;
   const FrameReport& last_report() const;
-  const Target& board() const;
+  const Board& board() const;
   const EngineOptions& options() const;
   // What a guided camera (simulated operator) needs.
   GuidanceInfo guidance_info() const;

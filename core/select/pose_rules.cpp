@@ -60,8 +60,8 @@ bool PoseGenOptions::is_valid(std::string* error) const {
   return true;
 }
 
-PoseGenerator::PoseGenerator(const Target& target, cv::Size image_size, const PoseGenOptions& options)
-    : target_(target), size_(image_size), options_(options) {
+PoseGenerator::PoseGenerator(const Board& board, cv::Size image_size, const PoseGenOptions& options)
+    : board_(board), size_(image_size), options_(options) {
   std::string why;
   if (!options.is_valid(&why)) throw Error(ErrorCode::kInvalidArgument, "pose generation options: " + why);
   if (image_size.width <= 0 || image_size.height <= 0) {
@@ -73,9 +73,9 @@ PoseGenerator::PoseGenerator(const Target& target, cv::Size image_size, const Po
 
 bool PoseGenerator::keep_in_view(const CameraModel& estimate, Pose* pose, std::string* note) const {
   const double margin = options_.border_margin_fraction * std::min(size_.width, size_.height);
-  if (board_fully_visible(estimate, target_, *pose, margin)) return true;
+  if (board_fully_visible(estimate, board_, *pose, margin)) return true;
   // Move back along the line of sight through the board's centre until it fits.
-  const cv::Size2d bs = target_.board_size_m();
+  const cv::Size2d bs = board_.board_size_m();
   const Eigen::Vector3d centre = pose->apply(Eigen::Vector3d(bs.width / 2, bs.height / 2, 0));
   const Eigen::Vector3d offset = pose->t - centre;
   const double d0 = centre.norm();
@@ -84,14 +84,14 @@ bool PoseGenerator::keep_in_view(const CameraModel& estimate, Pose* pose, std::s
     hi *= 1.25;
     Pose p = *pose;
     p.t = centre * hi + offset;
-    if (board_fully_visible(estimate, target_, p, margin)) break;
+    if (board_fully_visible(estimate, board_, p, margin)) break;
     if (i == 39) return false;
   }
   for (int i = 0; i < 20; ++i) {
     const double mid = 0.5 * (lo + hi);
     Pose p = *pose;
     p.t = centre * mid + offset;
-    (board_fully_visible(estimate, target_, p, margin) ? hi : lo) = mid;
+    (board_fully_visible(estimate, board_, p, margin) ? hi : lo) = mid;
   }
   pose->t = centre * hi + offset;
   if (note) {
@@ -106,7 +106,7 @@ TargetPose PoseGenerator::pinhole_pose(int axis, double tilt_deg, double shift_p
   TargetPose out;
   out.kind = "pinhole";
   out.tilt_deg = tilt_deg;
-  const cv::Size2d bs = target_.board_size_m();
+  const cv::Size2d bs = board_.board_size_m();
   // Paper §3.3 steps 2-3: tilt about the parameter's axis, then roll about the optical axis.
   const Eigen::Vector3d tilt_axis = axis == 0 ? Eigen::Vector3d::UnitX() : Eigen::Vector3d::UnitY();
   const Eigen::Matrix3d R = Eigen::AngleAxisd(rad(options_.roll_deg), Eigen::Vector3d::UnitZ()).toRotationMatrix() *
@@ -140,7 +140,7 @@ TargetPose PoseGenerator::initial_pose(int index, const CameraModel& estimate) c
   // (the reference implementation fitted only one, so the board overflowed vertically).
   TargetPose out;
   out.kind = "init-fronto-parallel";
-  const cv::Size2d bs = target_.board_size_m();
+  const cv::Size2d bs = board_.board_size_m();
   const double fill = options_.fullscreen_fill * (1.0 - 2.0 * options_.border_margin_fraction);
   const double Z = std::max(estimate.fx() * bs.width / (fill * size_.width),
                             estimate.fy() * bs.height / (fill * size_.height));
@@ -206,7 +206,7 @@ TargetPose PoseGenerator::distortion_pose_for(const CameraModel& estimate, const
   // Step 4: a board parallel to the image plane, its top-left corner at the box's top-left, at a
   // depth where it covers distortion_width_fraction of the image width (rotated 90 degrees for
   // tall boxes), clipped to the image.
-  const cv::Size2d bs = target_.board_size_m();
+  const cv::Size2d bs = board_.board_size_m();
   const bool rot90 = region.height > region.width;
   const double long_m = std::max(bs.width, bs.height), short_m = std::min(bs.width, bs.height);
   const double long_px = std::max<double>(rot90 ? region.height : region.width,
@@ -235,7 +235,7 @@ TargetPose PoseGenerator::distortion_pose_for(const CameraModel& estimate, const
     Eigen::Vector2d xn;
     if (!estimate.unproject(origin_px, &xn)) continue;
     pose = Pose::from_rotation(R, Eigen::Vector3d(xn.x(), xn.y(), 1.0) * Z);
-    if (board_fully_visible(estimate, target_, pose, margin)) {
+    if (board_fully_visible(estimate, board_, pose, margin)) {
       placed = true;
       if (k > 0) out.note = "shifted " + std::to_string(k * 5) + "% towards the centre to stay in view";
     }
@@ -258,7 +258,7 @@ TargetPose PoseGenerator::distortion_pose_for(const CameraModel& estimate, const
   // grown by the border margin (the strip between the board and the image border belongs to
   // this visit, or the search would find the same corner again and again).
   cv::Rect covered = box;
-  const auto outline = projected_outline(estimate, target_, pose, 4);
+  const auto outline = projected_outline(estimate, board_, pose, 4);
   if (!outline.empty()) {
     std::vector<cv::Point> cells;
     const int grow = static_cast<int>(std::ceil(margin / step)) + 1;
@@ -339,9 +339,9 @@ TargetPose PoseGenerator::next_pose(int param_index, const CameraModel& estimate
   return c[best];
 }
 
-std::vector<cv::Point2d> projected_outline(const CameraModel& model, const Target& target,
+std::vector<cv::Point2d> projected_outline(const CameraModel& model, const Board& board,
                                            const Pose& pose, int points_per_edge) {
-  const auto o = target.outline();
+  const auto o = board.outline();
   std::vector<cv::Point3d> pts;
   for (int e = 0; e < 4; ++e)
     for (int k = 0; k < points_per_edge; ++k)
@@ -352,9 +352,9 @@ std::vector<cv::Point2d> projected_outline(const CameraModel& model, const Targe
   return proj;
 }
 
-double board_jaccard(const CameraModel& model, const Target& target, const Pose& a, const Pose& b,
+double board_jaccard(const CameraModel& model, const Board& board, const Pose& a, const Pose& b,
                      int raster_scale) {
-  const auto pa = projected_outline(model, target, a), pb = projected_outline(model, target, b);
+  const auto pa = projected_outline(model, board, a), pb = projected_outline(model, board, b);
   if (pa.empty() || pb.empty()) return 0.0;
   const cv::Size sz((model.width() + raster_scale - 1) / raster_scale,
                     (model.height() + raster_scale - 1) / raster_scale);

@@ -58,7 +58,7 @@ using PoseScorer = std::function<double(const TargetPose&)>;
 
 class PoseGenerator {
  public:
-  PoseGenerator(const Target& target, cv::Size image_size, const PoseGenOptions& options = {});
+  PoseGenerator(const Board& board, cv::Size image_size, const PoseGenOptions& options = {});
 
   // Initialisation (paper §3.4): first a pose tilted init_tilt_deg about x (with the roll),
   // then the board parallel to the image plane covering the view.
@@ -90,7 +90,7 @@ class PoseGenerator {
   // Moves the board back along the line of sight until it is fully visible with the margin.
   bool keep_in_view(const CameraModel& estimate, Pose* pose, std::string* note) const;
 
-  Target target_;
+  Board board_;
   cv::Size size_;
   PoseGenOptions options_;
   std::vector<bool> used_[2];  // subdivision sequence elements used, per axis
@@ -100,12 +100,12 @@ class PoseGenerator {
 
 // Projected area overlap (intersection over union) of the board at two poses, both projected
 // with `model` including distortion (paper §4.2). Rasterised at 1/raster_scale resolution.
-double board_jaccard(const CameraModel& model, const Target& target, const Pose& a, const Pose& b,
+double board_jaccard(const CameraModel& model, const Board& board, const Pose& a, const Pose& b,
                      int raster_scale = 4);
 
 // The board outline projected densely (points per edge) through the model, pixels; empty if any
 // point is behind the camera.
-std::vector<cv::Point2d> projected_outline(const CameraModel& model, const Target& target,
+std::vector<cv::Point2d> projected_outline(const CameraModel& model, const Board& board,
                                            const Pose& pose, int points_per_edge = 12);
 
 }  // namespace posecal

@@ -111,7 +111,7 @@ CovariancePrediction ViewCandidates::predict(const Eigen::Matrix3d& R, const Eig
                          [&](auto lm) { return predict_fixed<kNumParamsOf<decltype(lm)>>(R, t, points, weights); });
 }
 
-ViewCandidates::ViewCandidates(const CameraModel& estimate, const Target& board, const std::vector<bool>& fixed,
+ViewCandidates::ViewCandidates(const CameraModel& estimate, const Board& board, const std::vector<bool>& fixed,
                                const Eigen::MatrixXd& information, const Eigen::MatrixXd& gram,
                                const std::vector<ViewPose>& views, const ViewCandidateOptions& options)
     : estimate_(estimate), board_(board), fixed_(fixed), information_(information), gram_(gram), options_(options) {

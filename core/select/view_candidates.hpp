@@ -46,7 +46,7 @@ class ViewCandidates {
   // estimate) whose outline is in view under `estimate` (board_outline_in_view) and screens each
   // on corner_quadrature()'s 3x3 points. `information` and `gram` as for predict_covariance();
   // `fixed` selects the free intrinsics. Throws Error(kInvalidArgument) for inconsistent sizes.
-  ViewCandidates(const CameraModel& estimate, const Target& board, const std::vector<bool>& fixed,
+  ViewCandidates(const CameraModel& estimate, const Board& board, const std::vector<bool>& fixed,
                  const Eigen::MatrixXd& information, const Eigen::MatrixXd& gram, const std::vector<ViewPose>& views,
                  const ViewCandidateOptions& options);
 
@@ -83,7 +83,7 @@ class ViewCandidates {
                                      const std::vector<cv::Point3d>& points, const std::vector<double>* weights) const;
 
   CameraModel estimate_;
-  Target board_;
+  Board board_;
   std::vector<bool> fixed_;
   std::vector<int> free_;  // indices of the free intrinsics
   Eigen::MatrixXd information_, gram_;

@@ -20,7 +20,7 @@ Eigen::Matrix3d small_rotation(double ax, double ay, double az) {
       .toRotationMatrix();
 }
 
-Eigen::Vector3d board_centre(const Target& t) {
+Eigen::Vector3d board_centre(const Board& t) {
   const cv::Size2d bs = t.board_size_m();
   return {bs.width / 2, bs.height / 2, 0};
 }
@@ -40,9 +40,9 @@ bool OperatorOptions::is_valid(std::string* error) const {
   return true;
 }
 
-SimulatedOperator::SimulatedOperator(const CameraModel& truth, const Target& target,
+SimulatedOperator::SimulatedOperator(const CameraModel& truth, const Board& board,
                                      const OperatorOptions& options, uint64_t seed)
-    : truth_(truth), target_(target), opt_(options), rng_(seed) {
+    : truth_(truth), board_(board), opt_(options), rng_(seed) {
   std::string why;
   if (!options.is_valid(&why)) throw Error(ErrorCode::kInvalidArgument, "operator options: " + why);
 }
@@ -50,7 +50,7 @@ SimulatedOperator::SimulatedOperator(const CameraModel& truth, const Target& tar
 Pose SimulatedOperator::perturb(const Pose& p) {
   std::normal_distribution<double> N(0.0, 1.0);
   const double sr = opt_.rotation_error_deg * kPi / 180.0;
-  const Eigen::Vector3d c = p.apply(board_centre(target_));
+  const Eigen::Vector3d c = p.apply(board_centre(board_));
   const Eigen::Matrix3d R = small_rotation(sr * N(rng_), sr * N(rng_), sr * N(rng_)) * p.R();
   // Translation error: N(0, 2% of the distance) per axis. For fields of view narrower than the
   // C525's (width / f = 1.2) the lateral part shrinks with the view, so the error stays the same
@@ -59,7 +59,7 @@ Pose SimulatedOperator::perturb(const Pose& p) {
   const double st = opt_.translation_error_fraction * c.norm();
   const double fov = std::min(1.0, truth_.width() / truth_.fx() / 1.2);
   const Eigen::Vector3d c2 = c + Eigen::Vector3d(st * fov * N(rng_), st * fov * N(rng_), st * N(rng_));
-  return Pose::from_rotation(R, c2 - R * board_centre(target_));
+  return Pose::from_rotation(R, c2 - R * board_centre(board_));
 }
 
 Pose SimulatedOperator::bootstrap_goal() {
@@ -67,7 +67,7 @@ Pose SimulatedOperator::bootstrap_goal() {
   std::normal_distribution<double> N(0.0, 1.0);
   std::uniform_real_distribution<double> U(-1.0, 1.0);
   const double frac = 0.5 + 0.1 * U(rng_);
-  const double depth = truth_.fx() * target_.board_size_m().width / (frac * truth_.width());
+  const double depth = truth_.fx() * board_.board_size_m().width / (frac * truth_.width());
   const Eigen::Vector2d px(truth_.cx() + 0.1 * truth_.width() * U(rng_), truth_.cy() + 0.1 * truth_.height() * U(rng_));
   Eigen::Vector2d xn;
   if (!truth_.unproject(px, &xn)) xn.setZero();
@@ -78,7 +78,7 @@ Pose SimulatedOperator::bootstrap_goal() {
   const Eigen::Matrix3d R = Eigen::AngleAxisd(tilt, Eigen::Vector3d(std::cos(axis), std::sin(axis), 0)).toRotationMatrix() *
                             small_rotation(0, 0, 5.0 * kPi / 180.0 * N(rng_));
   const Eigen::Vector3d c(xn.x() * depth, xn.y() * depth, depth);
-  return Pose::from_rotation(R, c - R * board_centre(target_));
+  return Pose::from_rotation(R, c - R * board_centre(board_));
 }
 
 Pose SimulatedOperator::attempt_goal(const GuidanceInfo& g) {
@@ -86,8 +86,8 @@ Pose SimulatedOperator::attempt_goal(const GuidanceInfo& g) {
   if (g.robot) return perturb(g.T_cam_board_target);
   // A person makes the board's image match the overlay, which is drawn with the engine's
   // current (imperfect) intrinsics: the pose that the TRUE camera sees as the overlay.
-  std::vector<cv::Point3d> pts = target_.corners();
-  for (const auto& o : target_.outline()) pts.push_back(o);
+  std::vector<cv::Point3d> pts = board_.corners();
+  for (const auto& o : board_.outline()) pts.push_back(o);
   const auto overlay = project_points(g.estimate, g.T_cam_board_target, pts);
   Pose aligned = g.T_cam_board_target;
   std::vector<cv::Point3d> obj;
@@ -150,13 +150,13 @@ Pose SimulatedOperator::next_pose(const GuidanceInfo& g) {
     // Moving: interpolate rotation (slerp) and translation towards the goal.
     const double a = (phase_frame_ + 1.0) / opt_.move_frames;
     const Eigen::Quaterniond q0(from_.R()), q1(goal_.R());
-    const Eigen::Vector3d c0 = from_.apply(board_centre(target_)), c1 = goal_.apply(board_centre(target_));
+    const Eigen::Vector3d c0 = from_.apply(board_centre(board_)), c1 = goal_.apply(board_centre(board_));
     const Eigen::Matrix3d R = q0.slerp(a, q1).toRotationMatrix();
-    p = Pose::from_rotation(R, (1 - a) * c0 + a * c1 - R * board_centre(target_));
+    p = Pose::from_rotation(R, (1 - a) * c0 + a * c1 - R * board_centre(board_));
   } else {
     // Holding: sub-pixel tremor.
     std::normal_distribution<double> N(0.0, 1.0);
-    const double depth = std::max(0.05, goal_.apply(board_centre(target_)).z());
+    const double depth = std::max(0.05, goal_.apply(board_centre(board_)).z());
     const double s = opt_.jitter_px * depth / truth_.fx();
     p = goal_;
     p.t += Eigen::Vector3d(s * N(rng_), s * N(rng_), 0.0);
@@ -193,11 +193,11 @@ CameraModel sample_camera(const CameraModel& reference, double rel_std, uint64_t
 
 std::vector<Observation> render_test_set(SyntheticCamera& camera, int count) {
   std::vector<Observation> out;
-  for (const Pose& p : test_set_views(camera.model(), camera.target(), count)) {
+  for (const Pose& p : test_set_views(camera.model(), camera.board(), count)) {
     // A test frame must determine its pose: at least half the board (a handful of corners on
     // one row at the border gave PnP nothing to hold on to and a 1150 px "test error").
-    const Detection d = camera.target().detect(camera.render(p));
-    if (static_cast<int>(d.size()) >= camera.target().num_corners() / 2) out.push_back(Observation::from(d));
+    const Detection d = camera.board().detect(camera.render(p));
+    if (static_cast<int>(d.size()) >= camera.board().num_corners() / 2) out.push_back(Observation::from(d));
   }
   return out;
 }
@@ -218,9 +218,9 @@ class SimCameraImpl final : public SimCamera {
  public:
   explicit SimCameraImpl(const SimCameraOptions& o)
       : options_(o),
-        target_(o.target),
-        synthetic_(o.truth, target_, o.render),
-        operator_(o.truth, target_, o.op, o.seed * 0x9e3779b97f4a7c15ull + 17) {
+        board_(o.board),
+        synthetic_(o.truth, board_, o.render),
+        operator_(o.truth, board_, o.op, o.seed * 0x9e3779b97f4a7c15ull + 17) {
     info_.uri = "sim://?seed=" + std::to_string(o.seed) + "&operator=" +
                 (o.op.kind == OperatorKind::kRobot ? "robot" : "person");
     info_.backend = "sim";
@@ -299,7 +299,7 @@ class SimCameraImpl final : public SimCamera {
 
  private:
   SimCameraOptions options_;
-  Target target_;
+  Board board_;
   SyntheticCamera synthetic_;
   SimulatedOperator operator_;
   DeviceInfo info_;
@@ -312,7 +312,7 @@ class SimCameraImpl final : public SimCamera {
 
 class SimBackend final : public CameraBackend {
  public:
-  explicit SimBackend(TargetSpec t) : target_(std::move(t)) {}
+  explicit SimBackend(BoardSpec t) : board_(std::move(t)) {}
   std::string scheme() const override { return "sim"; }
   std::vector<DeviceInfo> enumerate() override {
     DeviceInfo d;
@@ -325,10 +325,10 @@ class SimBackend final : public CameraBackend {
     d.transport = "simulated";
     return {d};
   }
-  std::unique_ptr<Camera> open(const Uri& uri) override { return make_sim_camera(sim_options_from_uri(uri, target_)); }
+  std::unique_ptr<Camera> open(const Uri& uri) override { return make_sim_camera(sim_options_from_uri(uri, board_)); }
 
  private:
-  TargetSpec target_;
+  BoardSpec board_;
 };
 
 double parse_number(const Uri& uri, const std::string& key, double lo, double hi) {
@@ -349,7 +349,7 @@ double parse_number(const Uri& uri, const std::string& key, double lo, double hi
 
 }  // namespace
 
-SimCameraOptions sim_options_from_uri(const Uri& uri, const TargetSpec& target) {
+SimCameraOptions sim_options_from_uri(const Uri& uri, const BoardSpec& board) {
   if (!uri.path.empty()) {
     throw Error(ErrorCode::kInvalidArgument, "camera URI '" + uri.text + "': use sim://?key=value options");
   }
@@ -360,7 +360,7 @@ SimCameraOptions sim_options_from_uri(const Uri& uri, const TargetSpec& target) 
     }
   }
   SimCameraOptions o;
-  o.target = target;
+  o.board = board;
   o.seed = uri.query.count("seed") ? static_cast<uint64_t>(parse_number(uri, "seed", 0, 4e9)) : 1;
   if (uri.query.count("model")) {
     o.truth = read_camera_model(uri.query.at("model"));
@@ -387,7 +387,7 @@ std::unique_ptr<Camera> make_sim_camera(const SimCameraOptions& options) {
   return std::make_unique<SimCameraImpl>(options);
 }
 
-std::shared_ptr<CameraBackend> make_sim_backend(const TargetSpec& target) { return std::make_shared<SimBackend>(target); }
+std::shared_ptr<CameraBackend> make_sim_backend(const BoardSpec& board) { return std::make_shared<SimBackend>(board); }
 
 SimCamera* as_sim_camera(Camera* camera) { return dynamic_cast<SimCamera*>(camera); }
 

@@ -35,7 +35,7 @@ struct AttemptStats {
 
 class SimulatedOperator {
  public:
-  SimulatedOperator(const CameraModel& truth, const Target& target, const OperatorOptions& options,
+  SimulatedOperator(const CameraModel& truth, const Board& board, const OperatorOptions& options,
                     uint64_t seed);
   // The board pose for the next frame, given the engine's current guidance.
   Pose next_pose(const GuidanceInfo& guidance);
@@ -50,7 +50,7 @@ class SimulatedOperator {
   Pose perturb(const Pose& p);
 
   CameraModel truth_;
-  Target target_;
+  Board board_;
   OperatorOptions opt_;
   std::mt19937_64 rng_;
   Pose current_, from_, goal_;
@@ -72,7 +72,7 @@ CameraModel sample_camera(const CameraModel& reference, double rel_std, uint64_t
 
 struct SimCameraOptions {
   CameraModel truth;          // ground truth camera
-  TargetSpec target;
+  BoardSpec board;
   RenderOptions render;       // noise, blur, seed...
   OperatorOptions op;
   uint64_t seed = 1;
@@ -80,10 +80,10 @@ struct SimCameraOptions {
 
 // Parses sim://?model=FILE&seed=N&operator=person|robot&noise=G&blur=PX into options (every
 // parameter optional; default camera sampled around the C525 with 10% std).
-SimCameraOptions sim_options_from_uri(const Uri& uri, const TargetSpec& target);
+SimCameraOptions sim_options_from_uri(const Uri& uri, const BoardSpec& board);
 
 class SimCamera;
-std::shared_ptr<CameraBackend> make_sim_backend(const TargetSpec& target = {});
+std::shared_ptr<CameraBackend> make_sim_backend(const BoardSpec& board = {});
 std::unique_ptr<Camera> make_sim_camera(const SimCameraOptions& options);
 // The simulated camera behind a Camera (nullptr if it is not one).
 SimCamera* as_sim_camera(Camera* camera);

@@ -45,7 +45,7 @@ uint64_t mix(uint64_t x) {
 
 struct SyntheticCamera::Impl {
   CameraModel model;
-  Target target;
+  Board board;
   RenderOptions options;
   cv::Mat rays;                 // CV_32FC2 normalised rays per sample
   std::vector<cv::Mat> levels;  // CV_8UC2: (albedo, coverage) per mip level
@@ -72,17 +72,17 @@ struct SyntheticCamera::Impl {
   }
 };
 
-SyntheticCamera::SyntheticCamera(const CameraModel& truth, const Target& target,
+SyntheticCamera::SyntheticCamera(const CameraModel& truth, const Board& board,
                                  const RenderOptions& options)
     : impl_(std::make_unique<Impl>()) {
   std::string why;
   if (!truth.is_valid(&why)) throw Error(ErrorCode::kInvalidArgument, "synthetic camera: " + why);
   options.validate();
   impl_->model = truth;
-  impl_->target = target;
+  impl_->board = board;
   impl_->options = options;
   impl_->rays = truth.ray_map(options.supersample);
-  const BoardTexture tex = target.render(kTexelsPerSquare, kMarginSquares);
+  const BoardTexture tex = board.render(kTexelsPerSquare, kMarginSquares);
   impl_->margin_m = tex.margin_m;
   cv::Mat level;
   cv::Mat alpha(tex.image.size(), CV_8U, cv::Scalar(255));
@@ -105,7 +105,7 @@ SyntheticCamera::SyntheticCamera(SyntheticCamera&&) noexcept = default;
 SyntheticCamera& SyntheticCamera::operator=(SyntheticCamera&&) noexcept = default;
 
 const CameraModel& SyntheticCamera::model() const { return impl_->model; }
-const Target& SyntheticCamera::target() const { return impl_->target; }
+const Board& SyntheticCamera::board() const { return impl_->board; }
 const RenderOptions& SyntheticCamera::options() const { return impl_->options; }
 uint64_t SyntheticCamera::frames_rendered() const { return impl_->frame; }
 
@@ -121,7 +121,7 @@ void SyntheticCamera::set_options(const RenderOptions& options) {
 }
 
 std::vector<cv::Point2d> SyntheticCamera::true_corners(const Pose& T_cam_board) const {
-  return project_points(impl_->model, T_cam_board, impl_->target.corners());
+  return project_points(impl_->model, T_cam_board, impl_->board.corners());
 }
 
 cv::Mat SyntheticCamera::render(const Pose& T_cam_board) {
@@ -148,7 +148,7 @@ cv::Mat SyntheticCamera::render(const Pose& T_cam_board) {
   // (sharpest detail needed anywhere on the board), ignoring the lens' local magnification.
   const double sample_step = 1.0 / (n * 0.5 * (s.model.fx() + s.model.fy()));
   double min_footprint_m = std::numeric_limits<double>::infinity();
-  const cv::Size2d bs = s.target.board_size_m();
+  const cv::Size2d bs = s.board.board_size_m();
   for (const auto& B :
        {cv::Point2d(0, 0), cv::Point2d(bs.width, 0), cv::Point2d(0, bs.height),
         cv::Point2d(bs.width, bs.height), cv::Point2d(bs.width / 2, bs.height / 2)}) {

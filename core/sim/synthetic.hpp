@@ -35,14 +35,14 @@ struct RenderOptions {
 
 class SyntheticCamera {
  public:
-  SyntheticCamera(const CameraModel& truth, const Target& target,
+  SyntheticCamera(const CameraModel& truth, const Board& board,
                   const RenderOptions& options = {});
   ~SyntheticCamera();
   SyntheticCamera(SyntheticCamera&&) noexcept;
   SyntheticCamera& operator=(SyntheticCamera&&) noexcept;
 
   const CameraModel& model() const;  // ground truth
-  const Target& target() const;
+  const Board& board() const;
   const RenderOptions& options() const;
   void set_options(const RenderOptions& options);  // keeps the cached ray map
 

@@ -15,7 +15,7 @@ using posecal::abi::require;
 
 struct posecal_calibration {
   OfflineCalibration offline;
-  TargetSpec target;
+  BoardSpec board;
   std::string images_dir;
 };
 
@@ -91,8 +91,8 @@ POSECAL_API posecal_status posecal_write_target(const char* target_spec, const c
                                                 double dpi, double margin_m) noexcept {
   return guarded(__func__, [&] {
     require(path, "path");
-    const TargetSpec spec = target_spec ? TargetSpec::parse(target_spec) : TargetSpec{};
-    Target(spec).write_printable(path, dpi, margin_m);
+    const BoardSpec spec = target_spec ? BoardSpec::parse(target_spec) : BoardSpec{};
+    Board(spec).write_printable(path, dpi, margin_m);
     return POSECAL_OK;
   });
 }
@@ -121,9 +121,9 @@ POSECAL_API posecal_status posecal_calibrate_images(posecal_context* ctx, const 
     if (!o.calibration.is_valid(&why))
       throw Error(ErrorCode::kInvalidArgument, std::string(what) + ": " + why);
     auto cal = std::make_unique<posecal_calibration>();
-    cal->target = target_spec ? TargetSpec::parse(target_spec) : TargetSpec{};
+    cal->board = target_spec ? BoardSpec::parse(target_spec) : BoardSpec{};
     cal->images_dir = images_dir;
-    cal->offline = calibrate_images(images_dir, cal->target, o);
+    cal->offline = calibrate_images(images_dir, cal->board, o);
     *out = cal.release();
     return POSECAL_OK;
   });
@@ -135,7 +135,7 @@ POSECAL_API posecal_status posecal_calibration_json(const posecal_calibration* c
     require(cal, "cal");
     require(size, "size");
     nlohmann::json j = abi::calibration_json(cal->offline.result);
-    j["target"] = cal->target.to_string();
+    j["target"] = cal->board.to_string();
     j["images_dir"] = cal->images_dir;
     j["frames_used"] = cal->offline.used.size();
     j["frames_rejected"] = cal->offline.rejected.size();
@@ -153,7 +153,7 @@ POSECAL_API posecal_status posecal_calibration_save(const posecal_calibration* c
   return guarded(__func__, [&] {
     require(cal, "cal");
     require(path, "path");
-    abi::save_calibration(path, cal->offline.result, {{"target", cal->target.to_string()}});
+    abi::save_calibration(path, cal->offline.result, {{"target", cal->board.to_string()}});
     return POSECAL_OK;
   });
 }

@@ -129,7 +129,7 @@ POSECAL_API posecal_status posecal_camera_features(posecal_context* ctx, const c
     const std::string key = args_key({camera_uri});
     std::string text;
     if (!ctx->impl->take_pending(__func__, key, &text)) {
-      const std::unique_ptr<Camera> camera = ctx->impl->open(camera_uri, TargetSpec{});
+      const std::unique_ptr<Camera> camera = ctx->impl->open(camera_uri, BoardSpec{});
       Json arr = Json::array();
       for (const FeatureInfo& f : camera->features()) arr.push_back(feature_json(f));
       text = abi::to_text(arr);
@@ -164,7 +164,7 @@ POSECAL_API posecal_status posecal_camera_grab(posecal_context* ctx, const char*
       throw Error(ErrorCode::kIo, std::string("cannot create directory '") + out_dir + "'" +
                                       (ec ? ": " + ec.message() : std::string()));
     }
-    Streaming s(ctx->impl->open(camera_uri, TargetSpec{}));
+    Streaming s(ctx->impl->open(camera_uri, BoardSpec{}));
     const auto t0 = Clock::now();
     const auto deadline = t0 + std::chrono::milliseconds(timeout_ms);
     Json files = Json::array();
@@ -241,9 +241,9 @@ POSECAL_API posecal_status posecal_evaluate(posecal_context* ctx, const char* re
     require(size, "size");
     const Json o = abi::parse_options(
         options_json, {"target", "frames", "min_corners", "timeout_ms"}, kEvalOptions);
-    const TargetSpec target =
-        o.contains("target") ? TargetSpec::parse(abi::get_string(o, "target", "", kEvalOptions))
-                             : TargetSpec{};
+    const BoardSpec spec =
+        o.contains("target") ? BoardSpec::parse(abi::get_string(o, "target", "", kEvalOptions))
+                             : BoardSpec{};
     const int want = abi::get_int(o, "frames", 20, 1, 1000, kEvalOptions);
     const int min_corners = abi::get_int(o, "min_corners", 6, 4, 100000, kEvalOptions);
     const int timeout_ms = abi::get_int(o, "timeout_ms", 30000, 1, 600000, kEvalOptions);
@@ -267,12 +267,12 @@ POSECAL_API posecal_status posecal_evaluate(posecal_context* ctx, const char* re
     };
     Json j;
     j["result_file"] = result_path;
-    j["target"] = target.to_string();
+    j["target"] = spec.to_string();
     std::vector<Observation> test_set;
     std::unique_ptr<CameraModel> truth;
     if (uri.scheme == "sim") {
       // The simulated camera's fixed test set (the one its live sessions report), and its truth.
-      const SimCameraOptions so = sim_options_from_uri(uri, target);
+      const SimCameraOptions so = sim_options_from_uri(uri, spec);
       check_size(so.truth.size(), "the simulated camera is");
       const std::unique_ptr<Camera> camera = make_sim_camera(so);
       j["camera"] = abi::device_json(camera->info());
@@ -287,10 +287,10 @@ POSECAL_API posecal_status posecal_evaluate(posecal_context* ctx, const char* re
       }
       // A real camera (or images://): the first `frames` frames that show at least min_corners
       // corners of the board.
-      Streaming s(ctx->impl->open(camera_uri, target));
+      Streaming s(ctx->impl->open(camera_uri, spec));
       j["camera"] = abi::device_json(s.camera->info());
       j["source"] = "camera";
-      const Target board(target);
+      const Board board(spec);
       const auto deadline = t0 + std::chrono::milliseconds(timeout_ms);
       int seen = 0;
       bool ended = false;
@@ -319,9 +319,9 @@ POSECAL_API posecal_status posecal_evaluate(posecal_context* ctx, const char* re
           throw Error(ErrorCode::kDegenerate, "none of the " + std::to_string(seen) +
                                                   " frames of '" + std::string(camera_uri) +
                                                   "' shows " + std::to_string(min_corners) +
-                                                  " corners of " + target.to_string());
+                                                  " corners of " + spec.to_string());
         }
-        throw Error(ErrorCode::kTimeout, "no frame showing the board (" + target.to_string() +
+        throw Error(ErrorCode::kTimeout, "no frame showing the board (" + spec.to_string() +
                                              ") from '" + std::string(camera_uri) + "' within " +
                                              std::to_string(timeout_ms) + " ms (" +
                                              std::to_string(seen) + " frames seen)");

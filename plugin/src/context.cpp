@@ -88,7 +88,7 @@ std::vector<posecal::DeviceInfo> Context::list(std::vector<std::string>* errors)
 }
 
 std::unique_ptr<posecal::Camera> Context::open(const std::string& uri_text,
-                                               const posecal::TargetSpec& target) {
+                                               const posecal::BoardSpec& target) {
   const posecal::Uri uri = posecal::Uri::parse(uri_text);
   require_enabled(uri.scheme);
   if (uri.scheme == "sim") {

@@ -31,7 +31,7 @@ class Context {
   // Cameras of every enabled backend; a backend that fails to enumerate is reported in *errors.
   std::vector<posecal::DeviceInfo> list(std::vector<std::string>* errors);
   // Opens a camera by URI. sim:// cameras show `target` (the board the caller will look for).
-  std::unique_ptr<posecal::Camera> open(const std::string& uri, const posecal::TargetSpec& target);
+  std::unique_ptr<posecal::Camera> open(const std::string& uri, const posecal::BoardSpec& target);
 
   // Buffer protocol of calls that do work once (grab, evaluate, features, list): when the
   // caller's buffer is too small the JSON is kept here, per calling thread and function, and a

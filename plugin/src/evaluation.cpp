@@ -7,7 +7,7 @@
 namespace posecal::abi {
 
 std::vector<Observation> sim_test_set(const SimCameraOptions& options) {
-  SyntheticCamera camera(options.truth, Target(options.target), options.render);
+  SyntheticCamera camera(options.truth, Board(options.board), options.render);
   return render_test_set(camera, 50);
 }
 

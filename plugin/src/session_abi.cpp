@@ -100,7 +100,7 @@ T get_one_of(const Json& c, const char* key, T def, std::initializer_list<std::p
 EngineOptions engine_options(const Json& c, bool* lock_settings) {
   using namespace posecal::abi;
   EngineOptions o;
-  if (c.contains("target")) o.target = TargetSpec::parse(get_string(c, "target", "", kConfig));
+  if (c.contains("target")) o.board = BoardSpec::parse(get_string(c, "target", "", kConfig));
   if (c.contains("operator")) {
     const std::string op = get_string(c, "operator", "", kConfig);
     if (op != "person" && op != "robot") {
@@ -322,9 +322,9 @@ POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char
     s->context = ctx->impl;
     std::unique_ptr<Camera> camera;
     if (uri.scheme == "sim") {
-      // The simulated board must be the session's target, and the simulated operator follows
+      // The simulated board must be the session's target (the board spec), and the simulated operator follows
       // the session's operator kind, so the camera is built here.
-      SimCameraOptions so = sim_options_from_uri(uri, eo.target);
+      SimCameraOptions so = sim_options_from_uri(uri, eo.board);
       const bool uri_has_op = uri.query.count("operator") > 0;
       const bool uri_robot = uri_has_op && uri.query.at("operator") == "robot";
       if (c.contains("operator") && uri_has_op && uri_robot != eo.robot) {
@@ -339,7 +339,7 @@ POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char
       }
       camera = make_sim_camera(so);
     } else {
-      camera = ctx->impl->open(camera_uri, eo.target);
+      camera = ctx->impl->open(camera_uri, eo.board);
     }
     s->external = uri.scheme == "external";
     s->camera = camera->info();
@@ -437,8 +437,8 @@ POSECAL_API posecal_status posecal_session_target_pose(posecal_session* session,
     const CalibrationEngine* eng = session->session->engine_ptr();
     if (!eng || !eng->target()) {
       throw Error(ErrorCode::kState,
-                  eng ? std::string("no target while ") + engine_state_name(eng->state())
-                      : "no target before the first frame");
+                  eng ? std::string("no board while ") + engine_state_name(eng->state())
+                      : "no board before the first frame");
     }
     const Pose& p = eng->target()->T_cam_board;
     for (int i = 0; i < 3; ++i) {
@@ -521,7 +521,7 @@ POSECAL_API posecal_status posecal_session_result(posecal_session* session, char
     if (eng.state() == EngineState::kFailed) j["failure"] = eng.failure_reason();
     j["keyframes"] = eng.keyframes();
     j["frames_processed"] = session->session->frames_processed();
-    j["target"] = eng.options().target.to_string();
+    j["target"] = eng.options().board.to_string();
     j["camera"] = abi::device_json(session->camera);
     j["locked_settings"] = session->session->locked_settings();
     j["started"] = session->started;
@@ -561,7 +561,7 @@ POSECAL_API posecal_status posecal_session_save(posecal_session* session,
     abi::save_calibration(path, r,
                           {{"camera_uri", session->camera.uri},
                            {"camera_id", session->camera.id},
-                           {"target", eng.options().target.to_string()},
+                           {"target", eng.options().board.to_string()},
                            {"converged", eng.converged() ? "true" : "false"}});
     return POSECAL_OK;
   });

@@ -12,12 +12,12 @@ std::shared_ptr<const FakeScene> make_scene(uint64_t seed, int n_views, uint32_t
   RenderOptions ro;
   ro.seed = seed;
   ro.noise_sigma = 1.0;
-  SyntheticCamera camera(scene->model, scene->target, ro);
+  SyntheticCamera camera(scene->model, scene->board, ro);
   ViewSampling vs;
   vs.max_tilt_deg = 35;
   vs.min_width_fraction = 0.4;
   vs.max_width_fraction = 0.7;
-  for (const Pose& pose : random_board_views(seed, n_views, scene->model, scene->target, vs)) {
+  for (const Pose& pose : random_board_views(seed, n_views, scene->model, scene->board, vs)) {
     scene->views.push_back(camera.render(pose));
   }
   return scene;

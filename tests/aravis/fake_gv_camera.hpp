@@ -27,7 +27,7 @@ namespace posecal::testing {
 
 struct FakeScene {
   CameraModel model = c525_reference_model();
-  Target target;
+  Board board;
   std::vector<cv::Mat> views;  // CV_8UC1, model size
   uint32_t tag = 1;
 };

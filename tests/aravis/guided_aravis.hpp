@@ -30,7 +30,7 @@ inline GuidedSceneOptions c525_scene(uint64_t seed, OperatorKind kind) {
 // The engine options of core's sim sessions for this scene.
 inline EngineOptions engine_options_for(const GuidedSceneOptions& o) {
   EngineOptions eo;
-  eo.target = o.target;
+  eo.board = o.board;
   eo.robot = o.op.kind == OperatorKind::kRobot;
   eo.target_timeout_frames = (o.op.move_frames + o.op.hold_frames) * o.op.max_tries + 1;
   return eo;

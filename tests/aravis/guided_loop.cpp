@@ -14,7 +14,7 @@ using Clock = std::chrono::steady_clock;
 SimCameraOptions GuidedSceneOptions::as_sim() const {
   SimCameraOptions o;
   o.truth = truth;
-  o.target = target;
+  o.board = board;
   o.render = render;
   o.op = op;
   o.seed = seed;
@@ -24,7 +24,7 @@ SimCameraOptions GuidedSceneOptions::as_sim() const {
 GuidedScene::GuidedScene(const GuidedSceneOptions& options, Encoder encode)
     : options_(options),
       encode_(std::move(encode)),
-      target_(options.target),
+      target_(options.board),
       renderer_(options.truth, target_, options.render),
       // The operator's stream is seeded as SimCameraImpl seeds it, so that a run reproduces
       // sim://?seed=N with the same options.

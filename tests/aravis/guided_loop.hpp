@@ -39,7 +39,7 @@ using Payload = std::shared_ptr<const std::vector<uint8_t>>;
 
 struct GuidedSceneOptions {
   CameraModel truth;  // ground truth; the camera must deliver frames of this size
-  TargetSpec target;
+  BoardSpec board;
   RenderOptions render;  // noise, blur, seed
   OperatorOptions op;
   uint64_t seed = 1;  // as SimCameraOptions::seed (the operator's random stream)
@@ -108,7 +108,7 @@ class GuidedScene {
 
   GuidedSceneOptions options_;
   Encoder encode_;
-  Target target_;
+  Board target_;
   // Touched only by the camera's thread (under render_mutex_, so that a scene may be fed by
   // more than one thread in turn, e.g. a restarted simulator).
   mutable std::mutex render_mutex_;

@@ -121,8 +121,8 @@ class AravisTest : public ::testing::Test {
            cv::norm(f.image, e, cv::NORM_INF) == 0;
   }
   bool board_found(const cv::Mat& image) const {
-    const Detection d = fake_->scene().target.detect(image);
-    return d.size() * 4 >= static_cast<size_t>(fake_->scene().target.num_corners()) * 3;
+    const Detection d = fake_->scene().board.detect(image);
+    return d.size() * 4 >= static_cast<size_t>(fake_->scene().board.num_corners()) * 3;
   }
 
   std::unique_ptr<FakeGvCamera> fake_;
@@ -834,8 +834,8 @@ TEST(AravisMultiCamera, DISABLED_InsidePrivateNamespace) {
       EXPECT_EQ(cv::norm(f.image, e, cv::NORM_INF), 0)
           << fakes[i]->serial() << " frame " << f.frame_id;
       if (round == 0) {
-        const Detection d = fakes[i]->scene().target.detect(f.image);
-        EXPECT_GE(d.size() * 4, static_cast<size_t>(fakes[i]->scene().target.num_corners()) * 3);
+        const Detection d = fakes[i]->scene().board.detect(f.image);
+        EXPECT_GE(d.size() * 4, static_cast<size_t>(fakes[i]->scene().board.num_corners()) * 3);
       }
     }
   }

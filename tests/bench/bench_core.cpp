@@ -21,7 +21,7 @@ namespace {
 
 struct Fixture {
   CameraModel truth = c525_reference_model();
-  Target target;
+  Board board;
   std::vector<Observation> frames;  // 10 frames x 40 corners
   CalibrationResult nine;           // solution from the first 9 frames
   cv::Mat frame_with_board, frame_without_board;
@@ -29,16 +29,16 @@ struct Fixture {
     RenderOptions ro;
     ro.noise_sigma = 2;
     ro.blur_sigma_px = 0.8;
-    SyntheticCamera sc(truth, target, ro);
+    SyntheticCamera sc(truth, board, ro);
     uint64_t seed = 77;
     while (frames.size() < 10) {
-      for (const Pose& p : random_board_views(seed++, 10, truth, target)) {
-        const Detection d = target.detect(sc.render(p));
+      for (const Pose& p : random_board_views(seed++, 10, truth, board)) {
+        const Detection d = board.detect(sc.render(p));
         if (d.size() == 40 && frames.size() < 10) frames.push_back(Observation::from(d));
       }
     }
     nine = calibrate(std::vector<Observation>(frames.begin(), frames.begin() + 9), truth.size());
-    frame_with_board = sc.render(random_board_views(3, 1, truth, target)[0]);
+    frame_with_board = sc.render(random_board_views(3, 1, truth, board)[0]);
     Pose away;
     away.t = Eigen::Vector3d(0, 0, -1);
     frame_without_board = sc.render(away);
@@ -94,7 +94,7 @@ static void BM_DetectCharuco_1280x720(benchmark::State& state) {
   Fixture& f = fixture();
   DetectorOptions o;
   for (auto _ : state) {
-    Detection d = f.target.detect(f.frame_with_board, o);
+    Detection d = f.board.detect(f.frame_with_board, o);
     if (d.size() < 30) state.SkipWithError("board not found");
     benchmark::DoNotOptimize(d.image_points.data());
   }
@@ -104,7 +104,7 @@ BENCHMARK(BM_DetectCharuco_1280x720)->Unit(benchmark::kMillisecond);
 static void BM_DetectCharuco_1280x720_NoBoard(benchmark::State& state) {
   Fixture& f = fixture();
   for (auto _ : state) {
-    Detection d = f.target.detect(f.frame_without_board);
+    Detection d = f.board.detect(f.frame_without_board);
     benchmark::DoNotOptimize(d.ids.data());
   }
 }
@@ -115,8 +115,8 @@ static void BM_RenderFrame_1280x720(benchmark::State& state) {
   RenderOptions ro;
   ro.noise_sigma = 2;
   ro.blur_sigma_px = 0.8;
-  SyntheticCamera sc(f.truth, f.target, ro);
-  const Pose p = random_board_views(5, 1, f.truth, f.target)[0];
+  SyntheticCamera sc(f.truth, f.board, ro);
+  const Pose p = random_board_views(5, 1, f.truth, f.board)[0];
   for (auto _ : state) {
     cv::Mat img = sc.render(p);
     benchmark::DoNotOptimize(img.data);
@@ -128,7 +128,7 @@ BENCHMARK(BM_RenderFrame_1280x720)->Unit(benchmark::kMillisecond);
 // moved back to stay in view) for cx.
 static void BM_TargetPose_Pinhole_PaperRule(benchmark::State& state) {
   Fixture& f = fixture();
-  PoseGenerator pg(f.target, f.truth.size());
+  PoseGenerator pg(f.board, f.truth.size());
   for (auto _ : state) {
     TargetPose t = pg.next_pose(2, f.nine.model);
     benchmark::DoNotOptimize(t.T_cam_board.t.data());
@@ -142,7 +142,7 @@ static void BM_TargetPose_Distortion_PaperRule(benchmark::State& state) {
   Fixture& f = fixture();
   for (auto _ : state) {
     state.PauseTiming();
-    PoseGenerator pg(f.target, f.truth.size());
+    PoseGenerator pg(f.board, f.truth.size());
     state.ResumeTiming();
     TargetPose t = pg.next_pose(4, f.nine.model);
     benchmark::DoNotOptimize(t.T_cam_board.t.data());
@@ -158,10 +158,10 @@ static void BM_TargetPose_Scored6(benchmark::State& state) {
   const Eigen::MatrixXd info = intrinsics_information(f.nine);
   for (auto _ : state) {
     state.PauseTiming();
-    PoseGenerator pg(f.target, f.truth.size());
+    PoseGenerator pg(f.board, f.truth.size());
     state.ResumeTiming();
     auto score = [&](const TargetPose& t) {
-      const Eigen::MatrixXd I = info + frame_information(f.nine.model, t.T_cam_board, f.target.corners(), f.nine.fixed);
+      const Eigen::MatrixXd I = info + frame_information(f.nine.model, t.T_cam_board, f.board.corners(), f.nine.fixed);
       return Eigen::MatrixXd(I.ldlt().solve(Eigen::MatrixXd::Identity(9, 9)))(param, param);
     };
     TargetPose t = pg.next_pose(param, f.nine.model, score, 6);
@@ -180,14 +180,14 @@ static void BM_TargetPose_ProjectionScored6(benchmark::State& state) {
   const Eigen::MatrixXd info = intrinsics_information(f.nine);
   for (auto _ : state) {
     state.PauseTiming();
-    PoseGenerator pg(f.target, f.truth.size());
+    PoseGenerator pg(f.board, f.truth.size());
     state.ResumeTiming();
     const Eigen::MatrixXd G = projection_gram(f.nine.model, f.nine.fixed, 8, 5);
     const std::vector<TargetPose> cands = pg.candidates(param, f.nine.model, 6);
     size_t pick = 0;
     double best = 1e300, best_var = 1e300;
     for (size_t i = 0; i < cands.size(); ++i) {
-      const Eigen::MatrixXd I = info + frame_information(f.nine.model, cands[i].T_cam_board, f.target.corners(), f.nine.fixed);
+      const Eigen::MatrixXd I = info + frame_information(f.nine.model, cands[i].T_cam_board, f.board.corners(), f.nine.fixed);
       const Eigen::MatrixXd cov = I.ldlt().solve(Eigen::MatrixXd::Identity(9, 9));
       best_var = std::min(best_var, cov(param, param));
       const double sc = (G * cov).trace();
@@ -218,7 +218,7 @@ static void BM_TargetPose_ProjectionScored6_Views(benchmark::State& state) {
   vs.max_width_fraction = 0.8;
   vs.margin_px = 0.02 * std::max(f.truth.width(), f.truth.height());
   const CalibrationResult eight = calibrate(std::vector<Observation>(f.frames.begin(), f.frames.begin() + 8), f.truth.size());
-  const ViewSampler sampler(eight.model, f.target, vs);
+  const ViewSampler sampler(eight.model, f.board, vs);
   std::vector<std::vector<ViewPose>> pools(8);
   std::mt19937_64 rng(1);
   for (std::vector<ViewPose>& pool : pools) {
@@ -232,19 +232,19 @@ static void BM_TargetPose_ProjectionScored6_Views(benchmark::State& state) {
   size_t screened = 0, picked_view = 0, runs = 0;
   for (auto _ : state) {
     state.PauseTiming();
-    PoseGenerator pg(f.target, f.truth.size());
+    PoseGenerator pg(f.board, f.truth.size());
     const std::vector<ViewPose>& pool = pools[runs % pools.size()];
     state.ResumeTiming();
     const Eigen::MatrixXd G = projection_gram(f.nine.model, f.nine.fixed, 8, 5);
     const std::vector<TargetPose> cands = pg.candidates(param, f.nine.model, 6);
     std::vector<double> score, var;
     for (const TargetPose& c : cands) {
-      const Eigen::MatrixXd I = info + frame_information(f.nine.model, c.T_cam_board, f.target.corners(), f.nine.fixed);
+      const Eigen::MatrixXd I = info + frame_information(f.nine.model, c.T_cam_board, f.board.corners(), f.nine.fixed);
       const Eigen::MatrixXd cov = I.ldlt().solve(Eigen::MatrixXd::Identity(9, 9));
       var.push_back(cov(param, param));
       score.push_back((G * cov).trace());
     }
-    ViewCandidates views(f.nine.model, f.target, f.nine.fixed, info, G, pool, vo);
+    ViewCandidates views(f.nine.model, f.board, f.nine.fixed, info, G, pool, vo);
     const std::vector<ViewCandidates::Exact> shortlist = views.shortlist(-1);
     for (const ViewCandidates::Exact& v : shortlist) {
       var.push_back(v.prediction.variance(param));
@@ -275,7 +275,7 @@ static void BM_ViewSampler_100(benchmark::State& state) {
   vs.margin_px = 0.02 * std::max(f.truth.width(), f.truth.height());
   std::mt19937_64 rng(1);
   for (auto _ : state) {
-    const ViewSampler sampler(f.nine.model, f.target, vs);
+    const ViewSampler sampler(f.nine.model, f.board, vs);
     std::vector<ViewPose> pool(100);
     for (ViewPose& v : pool) sampler.draw(rng, &v.R, &v.t, nullptr, 200);
     benchmark::DoNotOptimize(pool.data());
@@ -286,9 +286,9 @@ BENCHMARK(BM_ViewSampler_100)->Unit(benchmark::kMicrosecond);
 // frame_information() alone: one view of the 40-corner board (the unit of every candidate score).
 static void BM_FrameInformation_40Corners(benchmark::State& state) {
   Fixture& f = fixture();
-  const Pose T = random_board_views(7, 1, f.truth, f.target)[0];
+  const Pose T = random_board_views(7, 1, f.truth, f.board)[0];
   for (auto _ : state) {
-    const Eigen::MatrixXd I = frame_information(f.nine.model, T, f.target.corners(), f.nine.fixed);
+    const Eigen::MatrixXd I = frame_information(f.nine.model, T, f.board.corners(), f.nine.fixed);
     benchmark::DoNotOptimize(I.data());
   }
 }
@@ -312,11 +312,11 @@ static void BM_EngineFrame_1280x720(benchmark::State& state) {
   RenderOptions ro;
   ro.noise_sigma = 2;
   ro.blur_sigma_px = 0.8;
-  SyntheticCamera sc(f.truth, f.target, ro);
+  SyntheticCamera sc(f.truth, f.board, ro);
   EngineOptions eo;
   eo.robot = true;
   CalibrationEngine e(f.truth.size(), eo);
-  const Pose start = board_pose_at(f.target, Eigen::Vector3d(0, 0, 0.5), 0.4, 0.5, 0.2);
+  const Pose start = board_pose_at(f.board, Eigen::Vector3d(0, 0, 0.5), 0.4, 0.5, 0.2);
   for (int i = 0; i < 200 && e.state() != EngineState::kRefining; ++i) {
     const Pose p = e.target() ? e.target()->T_cam_board : start;
     if (e.target() && i % 3 == 1) e.report_pose_reached();
@@ -326,7 +326,7 @@ static void BM_EngineFrame_1280x720(benchmark::State& state) {
     state.SkipWithError("engine did not reach refining");
     return;
   }
-  const cv::Mat frame = sc.render(random_board_views(99, 1, f.truth, f.target)[0]);
+  const cv::Mat frame = sc.render(random_board_views(99, 1, f.truth, f.board)[0]);
   for (auto _ : state) {
     FrameReport r = e.process(frame);
     if (r.captured) state.SkipWithError("captured a keyframe: not a plain live-loop frame");

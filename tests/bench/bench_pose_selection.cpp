@@ -59,10 +59,10 @@ CameraModel reference_camera(const std::string& name) {
   throw Error(ErrorCode::kInvalidArgument, "unknown camera '" + name + "' (c525, industrial, tele)");
 }
 
-TargetSpec board_for(const std::string& camera) {
+BoardSpec board_for(const std::string& camera) {
   // A board that fills a useful part of the view at a workable distance.
-  if (camera == "tele") return TargetSpec::parse("charuco:9x6:0.028:0.0182:DICT_4X4_50");
-  return TargetSpec{};
+  if (camera == "tele") return BoardSpec::parse("charuco:9x6:0.028:0.0182:DICT_4X4_50");
+  return BoardSpec{};
 }
 
 struct Run {
@@ -151,16 +151,16 @@ double predicted_eps_gt(const CalibrationResult& res) {
   return std::sqrt((projection_gram(res.model, res.fixed, 40, 23) * cov).trace());
 }
 
-Run closed_loop(const CameraModel& truth, const TargetSpec& target, uint64_t seed, OperatorKind kind,
+Run closed_loop(const CameraModel& truth, const BoardSpec& target, uint64_t seed, OperatorKind kind,
                 const std::string& config, const std::vector<Observation>& test) {
   SimCameraOptions so;
   so.truth = truth;
-  so.target = target;
+  so.board = target;
   so.render = render_options(seed);
   so.op.kind = kind;
   so.seed = seed;
   EngineOptions eo;
-  eo.target = target;
+  eo.board = target;
   eo.robot = kind == OperatorKind::kRobot;
   apply_config(config, &eo);
   eo.target_timeout_frames = (so.op.move_frames + so.op.hold_frames) * so.op.max_tries + 1;
@@ -184,9 +184,9 @@ Run closed_loop(const CameraModel& truth, const TargetSpec& target, uint64_t see
   return r;
 }
 
-Run random_baseline(const CameraModel& truth, const TargetSpec& target, uint64_t seed, int n,
+Run random_baseline(const CameraModel& truth, const BoardSpec& target, uint64_t seed, int n,
                     const std::vector<Observation>& test) {
-  const Target board(target);
+  const Board board(target);
   SyntheticCamera sc(truth, board, render_options(seed + 1000003));
   ViewSampling vs;
   vs.max_tilt_deg = 45;
@@ -260,8 +260,8 @@ std::string fmt(const Stats& s, const char* f) {
 // of each parameter after each pose, over several sampled cameras.
 void figure3(const Options& o) {
   const CameraModel ref = reference_camera(o.camera);
-  const TargetSpec target = board_for(o.camera);
-  const Target board(target);
+  const BoardSpec target = board_for(o.camera);
+  const Board board(target);
   // sums[order][pose][param]
   std::vector<std::vector<std::vector<double>>> sums(2, std::vector<std::vector<double>>(20, std::vector<double>(9, 0.0)));
   std::vector<std::vector<int>> counts(2, std::vector<int>(20, 0));
@@ -392,7 +392,7 @@ int main(int argc, char** argv) {
     return 0;
   }
   const CameraModel ref = reference_camera(o.camera);
-  const TargetSpec target = board_for(o.camera);
+  const BoardSpec target = board_for(o.camera);
   std::vector<CameraRuns> runs(o.cameras);
   std::atomic<int> next{0};
   std::mutex print;
@@ -401,7 +401,7 @@ int main(int argc, char** argv) {
       CameraRuns& cr = runs[i];
       cr.seed = i + 1;
       const CameraModel truth = sample_camera(ref, 0.1, cr.seed);
-      SyntheticCamera test_cam(truth, Target(target), render_options(cr.seed + 7777));
+      SyntheticCamera test_cam(truth, Board(target), render_options(cr.seed + 7777));
       const std::vector<Observation> test = render_test_set(test_cam);
       cr.person = closed_loop(truth, target, cr.seed, OperatorKind::kPerson, o.config, test);
       cr.robot = closed_loop(truth, target, cr.seed, OperatorKind::kRobot, o.config, test);

@@ -74,7 +74,7 @@ struct Pick {
   double tilt_deg = 0, width_frac = 0, cx_frac = 0, cy_frac = 0;
 };
 
-Pick describe(const CameraModel& m, const Target& board, const Pose& p) {
+Pick describe(const CameraModel& m, const Board& board, const Pose& p) {
   Pick k;
   const Eigen::Matrix3d R = p.R();
   k.tilt_deg = std::acos(std::min(1.0, std::abs(R(2, 2)))) * 180.0 / M_PI;
@@ -98,7 +98,7 @@ struct Outcome {
 // The engine's loop in prediction: MaxIOD parameter, candidates = its 6 rule candidates plus the
 // first `n_pool` unused pool views, the best by projection score; prospective test on the chosen
 // candidate, then the measured ratio test (core's ratio_test).
-Outcome simulate(const CameraModel& truth, const Target& board, const Eigen::MatrixXd& G, const Eigen::MatrixXd& info0,
+Outcome simulate(const CameraModel& truth, const Board& board, const Eigen::MatrixXd& G, const Eigen::MatrixXd& info0,
                  const std::vector<Pose>& pool, const std::vector<Eigen::MatrixXd>& pool_info, int n_pool,
                  EngineOptions::ConvergenceMeasure measure, double threshold, bool serve_target) {
   const std::vector<bool> fixed(9, false);
@@ -191,7 +191,7 @@ int main(int argc, char** argv) {
       return 2;
     }
   }
-  const Target board(TargetSpec{});
+  const Board board(BoardSpec{});
   const std::vector<bool> fixed(9, false);
   std::vector<std::vector<double>> r_rules(kMaxK + 1), r_greedy(kMaxK + 1), r_random(kMaxK + 1);
   std::vector<Pick> greedy_picks;

@@ -83,7 +83,7 @@ TEST(Cli, CalibratesOpenCVSampleImagesLikeOpenCV) {
     ASSERT_TRUE(j["std"][k].is_number()) << k;
 
   // The same detections through cv::calibrateCamera.
-  const posecal::Target target(posecal::TargetSpec::parse("chessboard:9x6:0.025"));
+  const posecal::Board target(posecal::BoardSpec::parse("chessboard:9x6:0.025"));
   std::vector<std::vector<cv::Point3f>> obj;
   std::vector<std::vector<cv::Point2f>> img;
   cv::Size size;
@@ -154,7 +154,7 @@ TEST(Cli, WritesPrintableBoard) {
   ASSERT_EQ(r.status, 0) << r.out;
   const cv::Mat img = cv::imread(png, cv::IMREAD_GRAYSCALE);
   ASSERT_FALSE(img.empty());
-  EXPECT_EQ(posecal::Target().detect(img).size(), 40u);
+  EXPECT_EQ(posecal::Board().detect(img).size(), 40u);
   r = run("board --out " + testing::TempDir() + "/cli_board.pdf --target chessboard:9x6:0.025");
   EXPECT_EQ(r.status, 0) << r.out;
   r = run("board --out /nonexistent/dir/board.pdf");
@@ -331,7 +331,7 @@ TEST(Cli, EvaluateGrabFeatures) {
     const cv::Mat img = cv::imread(f["file"].get<std::string>(), cv::IMREAD_UNCHANGED);
     ASSERT_EQ(img.cols, 1280);
     ASSERT_EQ(img.rows, 720);
-    if (posecal::Target().detect(img).size() >= 6) ++with_board;
+    if (posecal::Board().detect(img).size() >= 6) ++with_board;
   }
   EXPECT_GE(with_board, 3);
   // The grabbed frames are a camera for evaluate too (images://).

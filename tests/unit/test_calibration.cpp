@@ -17,7 +17,7 @@ namespace {
 std::vector<Observation> observe(SyntheticCamera& sc, const std::vector<Pose>& poses) {
   std::vector<Observation> out;
   for (const Pose& p : poses) {
-    const Detection d = sc.target().detect(sc.render(p));
+    const Detection d = sc.board().detect(sc.render(p));
     if (d.size() >= 6) out.push_back(Observation::from(d));
   }
   return out;
@@ -35,7 +35,7 @@ RenderOptions noisy(uint64_t seed) {
 
 TEST(Calibration, RecoversEveryIntrinsicWithin3Sigma) {
   const CameraModel truth = c525_reference_model();
-  const Target target;
+  const Board target;
   SyntheticCamera sc(truth, target, noisy(7));
   const auto frames = observe(sc, random_board_views(21, 20, truth, target));
   ASSERT_EQ(frames.size(), 20u);
@@ -55,7 +55,7 @@ TEST(Calibration, RecoversEveryIntrinsicWithin3Sigma) {
 
 TEST(Calibration, NoWorseThanOpenCVOnTheSameFrames) {
   const CameraModel truth = c525_reference_model();
-  const Target target;
+  const Board target;
   SyntheticCamera sc(truth, target, noisy(8));
   const auto frames = observe(sc, random_board_views(22, 20, truth, target));
   const CalibrationResult r = calibrate(frames, truth.size());
@@ -91,7 +91,7 @@ TEST(Calibration, NoWorseThanOpenCVOnTheSameFrames) {
 
 TEST(Calibration, WarmStartMatchesColdStart) {
   const CameraModel truth = c525_reference_model();
-  const Target target;
+  const Board target;
   SyntheticCamera sc(truth, target, noisy(9));
   auto frames = observe(sc, random_board_views(23, 11, truth, target));
   const std::vector<Observation> first(frames.begin(), frames.end() - 1);
@@ -109,7 +109,7 @@ TEST(Calibration, WarmStartMatchesColdStart) {
 
 TEST(Calibration, FocalOnlySingleFrameBootstrap) {
   const CameraModel truth = c525_reference_model();
-  const Target target;
+  const Board target;
   SyntheticCamera sc(truth, target, noisy(10));
   // One view tilted 35 degrees: enough perspective to fix f with pp and distortion held.
   const Pose p = board_pose_at(target, Eigen::Vector3d(0, 0, 0.5), 0.3, 35 * M_PI / 180, 0.39);
@@ -133,7 +133,7 @@ TEST(Calibration, FocalOnlySingleFrameBootstrap) {
 TEST(Calibration, FrontoParallelViewsAreDegenerate) {
   const CameraModel truth =
       CameraModel::opencv5(1280, 720, 1000, 1000, 639.5, 359.5, {0, 0, 0, 0, 0});
-  const Target target;
+  const Board target;
   SyntheticCamera sc(truth, target, noisy(11));
   std::vector<Pose> poses;
   for (int i = 0; i < 6; ++i) {
@@ -200,7 +200,7 @@ TEST(Metrics, GroundTruthErrorAndTestError) {
   CameraModel shifted = truth;
   shifted.params()[2] += 1.5;  // cx off by 1.5 px: every ray lands 1.5 px away
   EXPECT_NEAR(ground_truth_error(truth, shifted), 1.5, 1e-9);
-  const Target target;
+  const Board target;
   SyntheticCamera sc(truth, target);
   const auto test = observe(sc, test_set_views(truth, target, 10));
   const TestError te = test_error(truth, test);
@@ -274,7 +274,7 @@ TEST(Calibration, ProjectionGramGivesTheExpectedProjectionError) {
 // frame_information() well enough to rank views (the engine checks its shortlist exactly).
 TEST(Calibration, WeightedInformationAndCornerQuadrature) {
   const CameraModel m = CameraModel::opencv5(1280, 720, 1100, 1080, 650, 350, {-0.3, 0.15, 0.002, -0.001, -0.05});
-  const Target board(TargetSpec{});
+  const Board board(BoardSpec{});
   const std::vector<bool> fixed(9, false);
   const Pose T = board_pose_at(board, Eigen::Vector3d(0.03, -0.02, 0.45), 0.7, 0.6, 0.4);
   const std::vector<cv::Point3d>& corners = board.corners();
@@ -336,7 +336,7 @@ TEST(Calibration, WeightedInformationAndCornerQuadrature) {
 // in the rotation-vector parametrisation, then the Schur complement onto the free intrinsics.
 TEST(Calibration, FrameInformationIsTheSchurComplementOfOneView) {
   const CameraModel m = CameraModel::opencv5(1280, 720, 1100, 1080, 650, 350, {-0.3, 0.15, 0.002, -0.001, -0.05});
-  const Target board(TargetSpec{});
+  const Board board(BoardSpec{});
   const Pose T = board_pose_at(board, Eigen::Vector3d(0.03, -0.02, 0.45), 0.7, 0.6, 0.4);
   ASSERT_TRUE(board_fully_visible(m, board, T));
   for (const std::vector<bool>& fixed :

@@ -13,7 +13,7 @@ using namespace posecal;
 
 TEST(CalibrationMonteCarlo, CovarianceIsHonest) {
   const CameraModel truth = c525_reference_model();
-  const Target target;
+  const Board target;
   constexpr int kReps = 50;
   const int idx[3] = {0, 2, 4};  // fx, cx, k1
   std::vector<double> z[3];

@@ -59,10 +59,10 @@ namespace {
 
 struct Rig {
   CameraModel truth = c525_reference_model();
-  Target target;
+  Board board;
   SyntheticCamera camera;
   std::vector<EngineEvent> events;
-  explicit Rig(RenderOptions ro = {}) : camera(truth, target, ro) {}
+  explicit Rig(RenderOptions ro = {}) : camera(truth, board, ro) {}
   void listen(CalibrationEngine& e) {
     e.set_event_callback([this](const EngineEvent& ev) { events.push_back(ev); });
   }
@@ -93,7 +93,7 @@ bool hold_until_capture(CalibrationEngine& e, SyntheticCamera& cam, const Pose& 
 // A robot first presents the board from its start pose (tilted, held still) so the engine can
 // estimate the focal length before it sends the robot anywhere.
 void present_start_view(CalibrationEngine& e, Rig& rig) {
-  const Pose start = board_pose_at(rig.target, Eigen::Vector3d(0, 0, 0.5), 0.4, 30 * M_PI / 180, 0.2);
+  const Pose start = board_pose_at(rig.board, Eigen::Vector3d(0, 0, 0.5), 0.4, 30 * M_PI / 180, 0.2);
   for (int i = 0; i < 3 && !e.target(); ++i) e.process(rig.camera.render(start));
 }
 
@@ -112,12 +112,12 @@ TEST(Engine, WaitsForTheBoardThenBootstrapsThenFollowsInitialPoses) {
   EXPECT_FALSE(r.board_visible);
   EXPECT_FALSE(e.target());
   // A fronto-parallel board: seen, but f is unobservable: bootstrapping.
-  const Pose fronto = board_pose_at(rig.target, Eigen::Vector3d(0, 0, 0.45), 0, 0, 0);
+  const Pose fronto = board_pose_at(rig.board, Eigen::Vector3d(0, 0, 0.45), 0, 0, 0);
   r = e.process(rig.camera.render(fronto));
   EXPECT_EQ(r.state, EngineState::kBootstrapping);
   EXPECT_TRUE(r.board_visible);
   // A tilted board determines f: initial pose 1 with a target.
-  const Pose tilted = board_pose_at(rig.target, Eigen::Vector3d(0, 0, 0.5), 0.4, 30 * M_PI / 180, 0.2);
+  const Pose tilted = board_pose_at(rig.board, Eigen::Vector3d(0, 0, 0.5), 0.4, 30 * M_PI / 180, 0.2);
   r = e.process(rig.camera.render(tilted));
   EXPECT_EQ(r.state, EngineState::kInitialPose1);
   ASSERT_TRUE(e.target());
@@ -299,7 +299,7 @@ TEST(Engine, OverlayDrawsTheTarget) {
   cv::Mat img(720, 1280, CV_8UC3, cv::Scalar(0, 0, 0));
   e.draw_overlay(img);
   // Pixels inside the projected target turned coloured; far outside stay black.
-  const auto outline = projected_outline(e.estimate(), rig.target, e.target()->T_cam_board, 4);
+  const auto outline = projected_outline(e.estimate(), rig.board, e.target()->T_cam_board, 4);
   cv::Point2d c(0, 0);
   for (const auto& p : outline) c += p;
   c /= static_cast<double>(outline.size());
@@ -313,7 +313,7 @@ TEST(Engine, OverlayDrawsTheTarget) {
 // on what the best next pose would do, and the session still converges.
 TEST(Engine, ProspectiveOnlyConvergence) {
   const Uri uri = Uri::parse("sim://?seed=11&operator=robot");
-  SimCameraOptions so = sim_options_from_uri(uri, TargetSpec{});
+  SimCameraOptions so = sim_options_from_uri(uri, BoardSpec{});
   EngineOptions eo;
   eo.robot = true;
   eo.target_timeout_frames = 36;
@@ -337,7 +337,7 @@ TEST(Engine, ProspectiveOnlyConvergence) {
 TEST(Engine, PersonAndRobotSessionsConverge) {
   for (const char* op : {"person", "robot"}) {
     const Uri uri = Uri::parse(std::string("sim://?seed=11&operator=") + op);
-    SimCameraOptions so = sim_options_from_uri(uri, TargetSpec{});
+    SimCameraOptions so = sim_options_from_uri(uri, BoardSpec{});
     EngineOptions eo;
     eo.robot = std::string(op) == "robot";
     eo.target_timeout_frames = 36;
@@ -353,7 +353,7 @@ TEST(Engine, PersonAndRobotSessionsConverge) {
 static std::unique_ptr<CalibrationSession> robot_session_at_first_refinement(EngineOptions eo, std::string* param,
                                                                              int seed = 11) {
   const Uri uri = Uri::parse("sim://?seed=" + std::to_string(seed) + "&operator=robot");
-  SimCameraOptions so = sim_options_from_uri(uri, TargetSpec{});
+  SimCameraOptions so = sim_options_from_uri(uri, BoardSpec{});
   eo.robot = true;
   eo.target_timeout_frames = 36;
   auto s = std::make_unique<CalibrationSession>(make_sim_camera(so), eo);
@@ -395,7 +395,7 @@ TEST(Engine, FirstRefinementTargetIsTheBestScoredCandidate) {
     const int p = static_cast<int>(std::find(names.begin(), names.end(), param) - names.begin());
     ASSERT_LT(p, est.num_params());
 
-    const Target board(eo.target);
+    const Board board(eo.board);
     PoseGenerator pg(board, est.size(), eo.posegen);
     const std::vector<TargetPose> cands = pg.candidates(p, est, eo.pose_candidates);
     ASSERT_GT(cands.size(), 1u);
@@ -448,7 +448,7 @@ TEST(Engine, ViewCandidateWinsOnlyWhenItServesTheTarget) {
     if (got.kind != "view") continue;
     ++views_won;
     const CalibrationResult& res = *s.engine().result();
-    const Target board(eo.target);
+    const Board board(eo.board);
     PoseGenerator pg(board, est.size(), eo.posegen);
     const std::vector<TargetPose> cands = pg.candidates(p, est, eo.pose_candidates);
     const Eigen::MatrixXd info = intrinsics_information(res);

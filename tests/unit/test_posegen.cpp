@@ -20,7 +20,7 @@ void roll_and_tilt(const Pose& p, double roll_deg, Eigen::Vector3d* axis, double
   *tilt_deg = aa.angle() / kDeg;
 }
 
-Eigen::Vector2d centre_pixel(const CameraModel& m, const Target& t, const Pose& p) {
+Eigen::Vector2d centre_pixel(const CameraModel& m, const Board& t, const Pose& p) {
   const cv::Size2d bs = t.board_size_m();
   Eigen::Vector2d uv;
   m.project(p.apply(Eigen::Vector3d(bs.width / 2, bs.height / 2, 0)), &uv);
@@ -37,7 +37,7 @@ TEST(PoseGen, BinarySubdivisionSequence) {
 
 TEST(PoseGen, PinholeTiltsFollowTheSequencePerAxisWithRoll) {
   const CameraModel cam = c525_reference_model();
-  const Target t;
+  const Board t;
   PoseGenerator pg(t, cam.size());
   // fx: tilt about y; the first angles are -70 + 140 * (0.25, 0.75, 0.125, 0.375).
   const double fx_angles[] = {-35.0, 35.0, -52.5, -17.5};
@@ -65,7 +65,7 @@ TEST(PoseGen, PinholeTiltsFollowTheSequencePerAxisWithRoll) {
 
 TEST(PoseGen, PrincipalPointPosesShiftFivePercentWithAlternatingSign) {
   const CameraModel cam = CameraModel::opencv5(1280, 720, 1000, 1000, 639.5, 359.5, {0, 0, 0, 0, 0});
-  const Target t;
+  const Board t;
   PoseGenerator pg(t, cam.size());
   double prev_sign = 0;
   for (int k = 0; k < 4; ++k) {
@@ -86,7 +86,7 @@ TEST(PoseGen, PrincipalPointPosesShiftFivePercentWithAlternatingSign) {
 }
 
 TEST(PoseGen, EveryGeneratedPoseIsFullyVisible) {
-  const Target t;
+  const Board t;
   const std::vector<CameraModel> cams = {
       c525_reference_model(),
       CameraModel::opencv5(2448, 2048, 2320, 2320, 1223.5, 1023.5, {-0.30, 0.12, 0.0005, -0.0004, -0.02}),
@@ -107,7 +107,7 @@ TEST(PoseGen, DistortionPosesVisitRegionsStrongestFirstAndMaskThem) {
   // Barrel distortion with the principal point right of centre: the left corners are the most
   // distorted, so the first region is on the left.
   const CameraModel cam = CameraModel::opencv5(1280, 720, 1000, 1000, 760, 359.5, {-0.25, 0.05, 0, 0, 0});
-  const Target t;
+  const Board t;
   PoseGenerator pg(t, cam.size());
   const int step = PoseGenOptions{}.distortion_map_step_px;
   const cv::Mat dmap = cam.distortion_map(step);
@@ -136,7 +136,7 @@ TEST(PoseGen, DistortionPosesVisitRegionsStrongestFirstAndMaskThem) {
 
 TEST(PoseGen, DistortionBoardIsParallelAndCoversAThirdOfTheWidth) {
   const CameraModel cam = CameraModel::opencv5(1280, 720, 1000, 1000, 639.5, 359.5, {-0.2, 0.03, 0, 0, 0});
-  const Target t;
+  const Board t;
   PoseGenOptions o;
   PoseGenerator pg(t, cam.size(), o);
   const TargetPose p = pg.next_pose(4, cam);
@@ -153,7 +153,7 @@ TEST(PoseGen, DistortionBoardIsParallelAndCoversAThirdOfTheWidth) {
 TEST(PoseGen, TallRegionsGetARotatedBoard) {
   // Principal point far right: the whole left edge is strongly distorted, a tall region.
   const CameraModel cam = CameraModel::opencv5(1280, 720, 1000, 1000, 1150, 359.5, {-0.2, 0.03, 0, 0, 0});
-  const Target t;
+  const Board t;
   PoseGenerator pg(t, cam.size());
   bool saw_rotated = false;
   for (int k = 0; k < 6; ++k) {
@@ -170,7 +170,7 @@ TEST(PoseGen, TallRegionsGetARotatedBoard) {
 
 TEST(PoseGen, FallsBackToAPinholePoseWhenNoRegionIsLeft) {
   const CameraModel cam = CameraModel::opencv5(1280, 720, 1000, 1000, 639.5, 359.5, {-0.2, 0.03, 0, 0, 0});
-  const Target t;
+  const Board t;
   PoseGenerator pg(t, cam.size());
   TargetPose p;
   int k = 0;
@@ -185,7 +185,7 @@ TEST(PoseGen, FallsBackToAPinholePoseWhenNoRegionIsLeft) {
 
 TEST(PoseGen, InitialPoses) {
   const CameraModel cam = c525_reference_model();
-  const Target t;
+  const Board t;
   PoseGenerator pg(t, cam.size());
   const TargetPose a = pg.initial_pose(0, cam);
   Eigen::Vector3d axis;
@@ -210,7 +210,7 @@ TEST(PoseGen, InitialPoses) {
 
 TEST(PoseGen, JaccardIndex) {
   const CameraModel cam = c525_reference_model();
-  const Target t;
+  const Board t;
   const Pose p = board_pose_at(t, Eigen::Vector3d(0, 0, 0.5), 0, 0.2, 0.1);
   EXPECT_NEAR(board_jaccard(cam, t, p, p), 1.0, 1e-9);
   Pose shifted = p;
@@ -235,5 +235,5 @@ TEST(PoseGen, OptionsValidate) {
   o = {};
   o.distortion_width_fraction = 0;
   EXPECT_FALSE(o.is_valid(&why));
-  EXPECT_THROW(PoseGenerator(Target(), cv::Size(1280, 720), o), Error);
+  EXPECT_THROW(PoseGenerator(Board(), cv::Size(1280, 720), o), Error);
 }

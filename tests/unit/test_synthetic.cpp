@@ -33,7 +33,7 @@ double rms_error(const Detection& d, const std::vector<cv::Point2d>& truth,
 TEST(SyntheticCamera, DetectedCornersMatchTrueProjections) {
   const CameraModel cam = c525_reference_model();
   for (const std::string spec : {"charuco:9x6:0.028:0.0182:DICT_4X4_50", "chessboard:9x6:0.025"}) {
-    const Target target(TargetSpec::parse(spec));
+    const Board target(BoardSpec::parse(spec));
     SyntheticCamera sc(cam, target);
     ViewSampling vs;
     vs.max_tilt_deg = 40;
@@ -59,7 +59,7 @@ TEST(SyntheticCamera, DetectedCornersMatchTrueProjections) {
 
 TEST(SyntheticCamera, StaysAccurateWithNoiseAndBlur) {
   const CameraModel cam = c525_reference_model();
-  const Target target;
+  const Board target;
   RenderOptions ro;
   ro.noise_sigma = 2.0;
   ro.blur_sigma_px = 0.8;
@@ -74,7 +74,7 @@ TEST(SyntheticCamera, StaysAccurateWithNoiseAndBlur) {
 
 TEST(SyntheticCamera, DeterministicPerSeed) {
   const CameraModel cam = c525_reference_model();
-  const Target target;
+  const Board target;
   RenderOptions ro;
   ro.noise_sigma = 3;
   ro.seed = 42;
@@ -92,7 +92,7 @@ TEST(SyntheticCamera, DeterministicPerSeed) {
 
 TEST(SyntheticCamera, BoardBehindOrEdgeOnShowsOnlyBackground) {
   const CameraModel cam = c525_reference_model();
-  const Target target;
+  const Board target;
   RenderOptions ro;
   ro.background_texture = 0;
   ro.background = 100;
@@ -127,14 +127,14 @@ TEST(SyntheticCamera, RejectsBadOptions) {
   EXPECT_THROW(ro.validate(), Error);
   CameraModel bad = c525_reference_model();
   bad.params()[0] = -5;
-  EXPECT_THROW(SyntheticCamera(bad, Target()), Error);
+  EXPECT_THROW(SyntheticCamera(bad, Board()), Error);
 }
 
 // Random views honour their limits and say how many draws they took; a board that cannot fit
 // ends after max_tries draws with no view.
 TEST(Views, RandomViewsHonourTheirLimitsAndCountDraws) {
   const CameraModel cam = c525_reference_model();
-  const Target target;
+  const Board target;
   ViewSampling vs;
   vs.max_tilt_deg = 40;
   vs.min_width_fraction = 0.4;

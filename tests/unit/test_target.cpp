@@ -12,25 +12,25 @@
 
 using namespace posecal;
 
-TEST(TargetSpec, ParsesBothKinds) {
-  const TargetSpec c = TargetSpec::parse("charuco:9x6:0.028:0.0182:DICT_4X4_50");
-  EXPECT_EQ(c.type, TargetType::kCharuco);
+TEST(BoardSpec, ParsesBothKinds) {
+  const BoardSpec c = BoardSpec::parse("charuco:9x6:0.028:0.0182:DICT_4X4_50");
+  EXPECT_EQ(c.type, BoardType::kCharuco);
   EXPECT_EQ(c.cols, 9);
   EXPECT_EQ(c.rows, 6);
   EXPECT_DOUBLE_EQ(c.square_length_m, 0.028);
   EXPECT_DOUBLE_EQ(c.marker_length_m, 0.0182);
-  EXPECT_EQ(TargetSpec::parse(c.to_string()).to_string(), c.to_string());
-  const TargetSpec b = TargetSpec::parse("chessboard:9x6:0.025");
-  EXPECT_EQ(b.type, TargetType::kChessboard);
-  EXPECT_EQ(Target(b).num_corners(), 54);
-  EXPECT_EQ(Target(c).num_corners(), 40);
+  EXPECT_EQ(BoardSpec::parse(c.to_string()).to_string(), c.to_string());
+  const BoardSpec b = BoardSpec::parse("chessboard:9x6:0.025");
+  EXPECT_EQ(b.type, BoardType::kChessboard);
+  EXPECT_EQ(Board(b).num_corners(), 54);
+  EXPECT_EQ(Board(c).num_corners(), 40);
   // Default is the paper's board: 9x6 squares, DICT_4X4_50, marker/square 0.65.
-  const TargetSpec d;
+  const BoardSpec d;
   EXPECT_NEAR(d.marker_length_m / d.square_length_m, 0.65, 1e-9);
   EXPECT_EQ(d.dictionary, "DICT_4X4_50");
 }
 
-TEST(TargetSpec, RejectsBadSpecsWithTheCause) {
+TEST(BoardSpec, RejectsBadSpecsWithTheCause) {
   const std::vector<std::pair<std::string, std::string>> cases = {
       {"", "empty"},
       {"circles:4x11:0.02", "unknown target type"},
@@ -46,7 +46,7 @@ TEST(TargetSpec, RejectsBadSpecsWithTheCause) {
   };
   for (const auto& [spec, needle] : cases) {
     try {
-      TargetSpec::parse(spec);
+      BoardSpec::parse(spec);
       ADD_FAILURE() << "accepted '" << spec << "'";
     } catch (const Error& e) {
       EXPECT_EQ(e.code(), ErrorCode::kInvalidArgument);
@@ -55,8 +55,8 @@ TEST(TargetSpec, RejectsBadSpecsWithTheCause) {
   }
 }
 
-TEST(Target, BoardFrameMatchesOpenCVCharuco) {
-  const Target t;
+TEST(Board, BoardFrameMatchesOpenCVCharuco) {
+  const Board t;
   auto dict = cv::aruco::getPredefinedDictionary(cv::aruco::DICT_4X4_50);
   auto board = cv::aruco::CharucoBoard::create(9, 6, 0.028f, 0.0182f, dict);
   ASSERT_EQ(static_cast<int>(board->chessboardCorners.size()), t.num_corners());
@@ -94,11 +94,11 @@ Offset compare(const std::vector<cv::Point2d>& found, const std::vector<int>& id
 // One scene, both detectors, compared with the true projections: OpenCV 4.6's ChArUco
 // interpolation is offset by (+0.5, +0.5) px, the chessboard detector is not; ours corrects the
 // ChArUco path so both agree with the pixel-centre convention.
-TEST(Target, CharucoHalfPixelOffsetIsCorrected) {
+TEST(Board, CharucoHalfPixelOffsetIsCorrected) {
   const CameraModel cam =
       CameraModel::opencv5(1280, 720, 1000, 1000, 639.5, 359.5, {0, 0, 0, 0, 0});
-  const Target charuco(TargetSpec::parse("charuco:9x6:0.028:0.0182:DICT_4X4_50"));
-  const Target chess(TargetSpec::parse("chessboard:8x5:0.028"));  // the same 9x6 squares
+  const Board charuco(BoardSpec::parse("charuco:9x6:0.028:0.0182:DICT_4X4_50"));
+  const Board chess(BoardSpec::parse("chessboard:8x5:0.028"));  // the same 9x6 squares
   const Pose pose = board_pose_at(charuco, Eigen::Vector3d(0.02, -0.01, 0.45), 0.7, 0.5, 0.3);
   RenderOptions ro;
   ro.background_texture = 0;
@@ -139,8 +139,8 @@ TEST(Target, CharucoHalfPixelOffsetIsCorrected) {
       raw_off.mean_x, raw_off.mean_y, o1.mean_x, o1.mean_y, o1.rms, o2.mean_x, o2.mean_y, o2.rms);
 }
 
-TEST(Target, DetectRejectsBadImagesWithoutCrashing) {
-  const Target t;
+TEST(Board, DetectRejectsBadImagesWithoutCrashing) {
+  const Board t;
   EXPECT_THROW(t.detect(cv::Mat()), Error);
   EXPECT_THROW(t.detect(cv::Mat(100, 100, CV_32F, cv::Scalar(0))), Error);
   EXPECT_TRUE(t.detect(cv::Mat(100, 100, CV_8U, cv::Scalar(0))).empty());
@@ -148,12 +148,12 @@ TEST(Target, DetectRejectsBadImagesWithoutCrashing) {
   cv::Mat noise(480, 640, CV_8U);
   cv::randu(noise, 0, 255);
   EXPECT_LT(t.detect(noise).size(), 4u);
-  const Target chess(TargetSpec::parse("chessboard:9x6:0.025"));
+  const Board chess(BoardSpec::parse("chessboard:9x6:0.025"));
   EXPECT_TRUE(chess.detect(noise).empty());
 }
 
-TEST(Target, PrintablePngHasExactPhysicalScaleAndIsDetectable) {
-  const Target t;
+TEST(Board, PrintablePngHasExactPhysicalScaleAndIsDetectable) {
+  const Board t;
   const std::string path = testing::TempDir() + "/posecal_board.png";
   t.write_printable(path, 150.0, 0.01);
   const cv::Mat img = cv::imread(path, cv::IMREAD_GRAYSCALE);
@@ -176,8 +176,8 @@ TEST(Target, PrintablePngHasExactPhysicalScaleAndIsDetectable) {
   std::remove(path.c_str());
 }
 
-TEST(Target, PrintablePdfIsWellFormed) {
-  const Target t;
+TEST(Board, PrintablePdfIsWellFormed) {
+  const Board t;
   const std::string path = testing::TempDir() + "/posecal_board.pdf";
   t.write_printable(path, 300.0, 0.01);
   std::ifstream f(path, std::ios::binary);

@@ -28,7 +28,7 @@ ViewSampling engine_sampling(const CameraModel& m) {
 double tilt_deg(const Eigen::Matrix3d& R) { return std::acos(std::min(1.0, std::abs(R(2, 2)))) * 180 / M_PI; }
 
 // Width of the board's projected corners as a fraction of the image width.
-double width_fraction(const CameraModel& m, const Target& board, const Eigen::Matrix3d& R, const Eigen::Vector3d& t) {
+double width_fraction(const CameraModel& m, const Board& board, const Eigen::Matrix3d& R, const Eigen::Vector3d& t) {
   double x0 = 1e9, x1 = -1e9;
   for (const cv::Point3d& c : board.outline()) {
     Eigen::Vector2d uv;
@@ -41,7 +41,7 @@ double width_fraction(const CameraModel& m, const Target& board, const Eigen::Ma
 // A calibration state to predict from: 4 random views of the truth.
 struct State {
   CameraModel truth = c525_reference_model();
-  Target board;
+  Board board;
   CalibrationResult result;
   Eigen::MatrixXd information, gram;
   State() {
@@ -64,7 +64,7 @@ struct State {
   }
 };
 
-std::vector<ViewPose> draw_pool(const CameraModel& m, const Target& board, uint64_t seed, int count) {
+std::vector<ViewPose> draw_pool(const CameraModel& m, const Board& board, uint64_t seed, int count) {
   const ViewSampler sampler(m, board, engine_sampling(m));
   std::mt19937_64 rng(seed);
   std::vector<ViewPose> out(static_cast<size_t>(count));
@@ -79,7 +79,7 @@ std::vector<ViewPose> draw_pool(const CameraModel& m, const Target& board, uint6
 // draw counts add up; a board that cannot fit ends after max_tries draws.
 TEST(ViewSampler, DrawsKeepTheirLimits) {
   const CameraModel cam = c525_reference_model();
-  const Target board;
+  const Board board;
   ViewSampling vs = engine_sampling(cam);
   const ViewSampler sampler(cam, board, vs);
   std::mt19937_64 rng(5);
@@ -124,7 +124,7 @@ TEST(ViewSampler, DrawsKeepTheirLimits) {
 // drawn under one estimate mostly stay in view under a later one (the engine's pool).
 TEST(ViewSampler, DrawsRealiseAndStayInViewUnderALaterEstimate) {
   const CameraModel truth = c525_reference_model();
-  const Target board;
+  const Board board;
   const double f0 = std::max(truth.width(), truth.height());
   const CameraModel earlier = CameraModel::opencv5(truth.width(), truth.height(), f0, f0, (truth.width() - 1) * 0.5,
                                                    (truth.height() - 1) * 0.5, {0, 0, 0, 0, 0});

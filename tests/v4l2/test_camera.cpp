@@ -199,7 +199,7 @@ void stream_and_detect(Rig& rig, PixelFormat format, cv::Size size, double fps, 
   cam->start();
   EXPECT_TRUE(rig.emu->streaming(rig.video(0)));
   EXPECT_EQ(rig.emu->live_mappings(), 4);  // queue_depth buffers
-  const Target target;
+  const Board target;
   uint64_t last_id = 0;
   int64_t last_ts = 0;
   for (int i = 0; i < frames; ++i) {
@@ -268,7 +268,7 @@ TEST_F(V4l2Camera_, CorruptMjpegFramesAreCountedAndSkipped) {
   EXPECT_EQ(f.frame_id, 2u);
   EXPECT_EQ(cam->stats().frames_incomplete, 2u);
   EXPECT_EQ(cam->stats().frames_delivered, 1u);
-  EXPECT_FALSE(Target().detect(f.image).empty());
+  EXPECT_FALSE(Board().detect(f.image).empty());
   cam->stop();
   rig.emu->corrupt_next_frames(rig.video(0), 1, emu::Corruption::kErrorFlag);
   cam->start();

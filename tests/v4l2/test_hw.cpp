@@ -77,7 +77,7 @@ TEST(V4l2Hardware, StreamsFromARealCamera) {
               static_cast<unsigned long long>(st.frames_dropped),
               static_cast<unsigned long long>(st.frames_incomplete));
   EXPECT_GE(ok, 25);
-  const Detection d = Target().detect(f.image);
+  const Detection d = Board().detect(f.image);
   std::printf("board corners detected in the last frame: %zu (0 unless a board is in view)\n",
               d.size());
 }

@@ -123,7 +123,7 @@ cv::Mat render_scene(uint32_t width, uint32_t height) {
   const CameraModel model = CameraModel::opencv5(static_cast<int>(width), static_cast<int>(height),
                                                  f, f, (width - 1) / 2.0, (height - 1) / 2.0,
                                                  {-0.0032, -0.206, -0.0028, -0.0039, 0.248});
-  const Target target;
+  const Board target;
   double z = f * target.board_size_m().width / (0.55 * width);
   Pose pose = board_pose_at(target, Eigen::Vector3d(0, 0, z), 0.4, 0.3, 0.05);
   for (int i = 0; i < 10 && !board_fully_visible(model, target, pose); ++i) {
