@@ -1,5 +1,7 @@
 // Calibration: Zhang's initial solution (OpenCV) refined by a Ceres bundle adjustment over the
-// intrinsics and every frame's board pose, with the parameter covariance of the paper's eq. 5.
+// intrinsics and every frame's board pose (solve.cpp), with the parameter covariance of the
+// paper's eq. 5 (covariance.cpp). Pose estimation of one view: pose_estimation.hpp; the
+// information maths of pose selection: information.hpp.
 #pragma once
 
 #include <Eigen/Core>
@@ -41,6 +43,14 @@ struct CalibrationOptions {
   bool is_valid(std::string* error) const;
 };
 
+// Why the bundle adjustment stopped (ceres::Solver::Summary's termination type; a solver failure
+// throws instead).
+enum class SolverTermination {
+  kConvergence,    // a function, gradient or parameter tolerance was reached
+  kNoConvergence,  // the iteration limit was reached first
+};
+const char* solver_termination_name(SolverTermination t);  // "convergence", "no_convergence"
+
 struct CalibrationResult {
   CameraModel model;
   std::vector<Pose> poses;  // T_cam_board per frame
@@ -48,7 +58,9 @@ struct CalibrationResult {
   int num_points = 0;
   int num_unknowns = 0;  // free intrinsics + 6 per frame
   int iterations = 0;
-  bool converged = false;  // solver reached a tolerance (not the iteration cap)
+  SolverTermination termination = SolverTermination::kNoConvergence;
+  std::string termination_message;  // Ceres' own words, e.g. which tolerance was reached
+  bool solver_converged() const { return termination == SolverTermination::kConvergence; }
   double rms_px = 0;       // eps_res: sqrt(sum |p - pi(P)|^2 / N)
   std::vector<double> frame_rms_px;
   // Backward transport of covariance, Sigma_v = (J^T Sigma_p^-1 J)^+ with Sigma_p = I (paper
@@ -80,9 +92,5 @@ CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size ima
                             const CalibrationOptions& options = {},
                             const WarmStart* warm_start = nullptr);
 
-// Fits the pose of one frame with fixed intrinsics (PnP, then Ceres refinement). Returns false if
-// the frame has fewer than 4 points or the fit fails.
-bool estimate_pose(const CameraModel& model, const Observation& frame, Pose* T_cam_board,
-                   double* rms_px = nullptr);
 
 }  // namespace posecal

@@ -3,6 +3,7 @@
 #include <cmath>
 #include <limits>
 
+#include "calib/pose_estimation.hpp"
 #include "common/error.hpp"
 
 namespace posecal {

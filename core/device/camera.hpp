@@ -35,6 +35,7 @@
 
 #include "lens/camera_model.hpp"
 #include "common/error.hpp"
+#include "device/guidance.hpp"
 #include "lens/geometry.hpp"
 
 namespace posecal {
@@ -125,20 +126,6 @@ struct CameraEvent {
   std::string message;
 };
 using CameraEventCallback = std::function<void(const CameraEvent&)>;
-
-// What the engine wants next, for cameras that can act on it: the simulated operator moves the
-// synthetic board to the target. Real cameras ignore it.
-struct GuidanceInfo {
-  bool has_target = false;     // false while waiting for the board / after convergence
-  bool bootstrapping = false;  // no calibration yet: show the board roughly fronto-parallel
-  bool robot = false;          // target is to be reached literally (6-DoF), not by overlay
-  Pose T_cam_board_target;     // target board pose in the camera frame
-  CameraModel estimate;        // current intrinsics, used to draw the overlay
-  uint64_t target_serial = 0;  // increments with every new target
-  std::string target_kind;     // "init-tilted", "init-fronto-parallel", "pinhole", "distortion", "view" (EngineOptions::view_candidates)
-  int keyframes = 0;           // keyframes captured so far
-  bool finished = false;       // converged or failed: nothing more to show
-};
 
 class Camera {
  public:

@@ -104,7 +104,7 @@ bool PoseGenerator::keep_in_view(const CameraModel& estimate, Pose* pose, std::s
 TargetPose PoseGenerator::pinhole_pose(int axis, double tilt_deg, double shift_px,
                                        const CameraModel& estimate) const {
   TargetPose out;
-  out.kind = "pinhole";
+  out.kind = TargetKind::kPinhole;
   out.tilt_deg = tilt_deg;
   const cv::Size2d bs = board_.board_size_m();
   // Paper §3.3 steps 2-3: tilt about the parameter's axis, then roll about the optical axis.
@@ -132,14 +132,14 @@ TargetPose PoseGenerator::pinhole_pose(int axis, double tilt_deg, double shift_p
 TargetPose PoseGenerator::initial_pose(int index, const CameraModel& estimate) const {
   if (index == 0) {
     TargetPose p = pinhole_pose(0, options_.init_tilt_deg, 0.0, estimate);
-    p.kind = "init-tilted";
+    p.kind = TargetKind::kInitTilted;
     return p;
   }
   if (index != 1) throw Error(ErrorCode::kInvalidArgument, "initial_pose: index must be 0 or 1");
   // Board parallel to the image plane covering the view: the depth must fit BOTH image axes
   // (the reference implementation fitted only one, so the board overflowed vertically).
   TargetPose out;
-  out.kind = "init-fronto-parallel";
+  out.kind = TargetKind::kInitFrontoParallel;
   const cv::Size2d bs = board_.board_size_m();
   const double fill = options_.fullscreen_fill * (1.0 - 2.0 * options_.border_margin_fraction);
   const double Z = std::max(estimate.fx() * bs.width / (fill * size_.width),
@@ -222,7 +222,7 @@ TargetPose PoseGenerator::distortion_pose_for(const CameraModel& estimate, const
   const Eigen::Matrix3d R = rot90 ? Eigen::AngleAxisd(kPi / 2, Eigen::Vector3d::UnitZ()).toRotationMatrix()
                                   : Eigen::Matrix3d::Identity();
   TargetPose out;
-  out.kind = "distortion";
+  out.kind = TargetKind::kDistortion;
   out.region = region;
   Pose pose;
   bool placed = false;
@@ -313,12 +313,12 @@ std::vector<TargetPose> PoseGenerator::candidates(int param_index, const CameraM
 }
 
 void PoseGenerator::commit(const TargetPose& t) {
-  if (t.kind == "pinhole" && t.axis >= 0 && t.sequence_index >= 0) {
+  if (t.kind == TargetKind::kPinhole && t.axis >= 0 && t.sequence_index >= 0) {
     auto& used = used_[t.axis];
     if (static_cast<int>(used.size()) <= t.sequence_index) used.resize(t.sequence_index + 1, false);
     used[t.sequence_index] = true;
     if (t.shift_sign != 0) shift_sign_[t.axis] = -t.shift_sign;
-  } else if (t.kind == "distortion") {
+  } else if (t.kind == TargetKind::kDistortion) {
     mask_(t.mask_cells & cv::Rect(0, 0, mask_.cols, mask_.rows)).setTo(1);
   }
 }

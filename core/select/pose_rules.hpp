@@ -9,6 +9,7 @@
 #include "lens/camera_model.hpp"
 #include "lens/geometry.hpp"
 #include "board/board.hpp"
+#include "device/guidance.hpp"
 
 namespace posecal {
 
@@ -42,7 +43,7 @@ struct PoseGenOptions {
 
 struct TargetPose {
   Pose T_cam_board;
-  std::string kind;     // "init-tilted", "init-fronto-parallel", "pinhole", "distortion", "view" (EngineOptions::view_candidates)
+  TargetKind kind = TargetKind::kPinhole;
   std::string note;     // what was adjusted (moved back to stay in view, fallback, ...)
   double tilt_deg = 0;  // C_K poses: tilt angle used
   int axis = -1;        // C_K poses: 0 tilt about x, 1 about y

@@ -170,7 +170,7 @@ std::vector<ViewCandidates::Exact> ViewCandidates::shortlist(int rank_by, int al
     if (!v.exact_done) {
       v.exact_done = true;
       v.target.T_cam_board = Pose::from_rotation(v.R, v.t);
-      v.target.kind = "view";
+      v.target.kind = TargetKind::kView;
       v.visible = board_fully_visible(estimate_, board_, v.target.T_cam_board, margin);
       if (v.visible) v.exact = predict(v.R, v.t, board_.corners(), nullptr);
     }

@@ -127,7 +127,7 @@ Pose SimulatedOperator::next_pose(const GuidanceInfo& g) {
     if (g.target_serial != serial_) {
       if (in_attempt_ && g.keyframes > keyframes_seen_) ++stats_[kind_].reached;
       serial_ = g.target_serial;
-      kind_ = g.has_target ? g.target_kind : "bootstrap";
+      kind_ = g.has_target ? target_kind_name(g.target_kind) : "bootstrap";
       tries_ = 0;
       gave_up_ = false;
       start_attempt();

@@ -57,7 +57,8 @@ nlohmann::json calibration_json(const CalibrationResult& r) {
   j["per_frame_rms"] = per_frame;
   j["points"] = r.num_points;
   j["iterations"] = r.iterations;
-  j["solver_converged"] = r.converged;
+  j["solver_converged"] = r.solver_converged();
+  j["solver_termination"] = solver_termination_name(r.termination);
   const int n = static_cast<int>(names.size());
   const Eigen::MatrixXd cov = r.covariance_scaled();
   nlohmann::json c = nlohmann::json::array();

@@ -121,7 +121,7 @@ TEST(Engine, WaitsForTheBoardThenBootstrapsThenFollowsInitialPoses) {
   r = e.process(rig.camera.render(tilted));
   EXPECT_EQ(r.state, EngineState::kInitialPose1);
   ASSERT_TRUE(e.target());
-  EXPECT_EQ(e.target()->kind, "init-tilted");
+  EXPECT_EQ(e.target()->kind, TargetKind::kInitTilted);
   EXPECT_NEAR(e.estimate().fx(), rig.truth.fx(), 0.05 * rig.truth.fx());
   EXPECT_EQ(rig.transitions(), (std::vector<std::string>{"waiting_for_board>bootstrapping", "bootstrapping>initial_pose_1"}));
 }
@@ -445,7 +445,7 @@ TEST(Engine, ViewCandidateWinsOnlyWhenItServesTheTarget) {
     ASSERT_LT(p, est.num_params());
     ASSERT_EQ(param_group(p), ParamGroup::kPinhole) << param;
     const TargetPose& got = *s.engine().target();
-    if (got.kind != "view") continue;
+    if (got.kind != TargetKind::kView) continue;
     ++views_won;
     const CalibrationResult& res = *s.engine().result();
     const Board board(eo.board);
@@ -482,7 +482,7 @@ TEST(Engine, SkippedViewIsReplacedByTheNextBestCandidate) {
   std::unique_ptr<CalibrationSession> session = robot_session_at_first_refinement(eo, &param);
   if (!session) return;
   CalibrationEngine& engine = session->engine();
-  ASSERT_EQ(engine.target()->kind, "view") << "300 free views and none better than the rule poses";
+  ASSERT_EQ(engine.target()->kind, TargetKind::kView) << "300 free views and none better than the rule poses";
   std::vector<Pose> seen = {engine.target()->T_cam_board};
   const int keyframes = engine.keyframes();
   int views = 0;
@@ -492,7 +492,7 @@ TEST(Engine, SkippedViewIsReplacedByTheNextBestCandidate) {
     const TargetPose& t = *engine.target();
     for (const Pose& p : seen) EXPECT_GT((p.r - t.T_cam_board.r).norm() + (p.t - t.T_cam_board.t).norm(), 1e-9) << "skip " << i;
     seen.push_back(t.T_cam_board);
-    views += t.kind == "view";
+    views += t.kind == TargetKind::kView;
   }
   EXPECT_GE(views, 3);  // views keep winning after a skip (the next best of 300)
 }

@@ -43,7 +43,7 @@ TEST(PoseGen, PinholeTiltsFollowTheSequencePerAxisWithRoll) {
   const double fx_angles[] = {-35.0, 35.0, -52.5, -17.5};
   for (double want : fx_angles) {
     const TargetPose p = pg.next_pose(0, cam);
-    EXPECT_EQ(p.kind, "pinhole");
+    EXPECT_EQ(p.kind, TargetKind::kPinhole);
     Eigen::Vector3d axis;
     double tilt;
     roll_and_tilt(p.T_cam_board, 22.5, &axis, &tilt);
@@ -98,7 +98,7 @@ TEST(PoseGen, EveryGeneratedPoseIsFullyVisible) {
     for (int i = 0; i < 30; ++i) {
       const TargetPose p = pg.next_pose(i % 9, cam);
       EXPECT_TRUE(board_fully_visible(cam, t, p.T_cam_board, margin * 0.99))
-          << cam.width() << "x" << cam.height() << " param " << i % 9 << " " << p.kind << " " << p.note;
+          << cam.width() << "x" << cam.height() << " param " << i % 9 << " " << target_kind_name(p.kind) << " " << p.note;
     }
   }
 }
@@ -114,7 +114,7 @@ TEST(PoseGen, DistortionPosesVisitRegionsStrongestFirstAndMaskThem) {
   std::vector<double> strength;
   for (int k = 0; k < 4; ++k) {
     const TargetPose p = pg.next_pose(4, cam);
-    ASSERT_EQ(p.kind, "distortion") << k;
+    ASSERT_EQ(p.kind, TargetKind::kDistortion) << k;
     // Mean displacement inside the region this pose samples.
     const cv::Rect cells(p.region.x / step, p.region.y / step, std::max(1, p.region.width / step),
                          std::max(1, p.region.height / step));
@@ -140,7 +140,7 @@ TEST(PoseGen, DistortionBoardIsParallelAndCoversAThirdOfTheWidth) {
   PoseGenOptions o;
   PoseGenerator pg(t, cam.size(), o);
   const TargetPose p = pg.next_pose(4, cam);
-  ASSERT_EQ(p.kind, "distortion");
+  ASSERT_EQ(p.kind, TargetKind::kDistortion);
   // Parallel to the image plane: the board normal is the optical axis (maybe rolled 90 deg).
   EXPECT_NEAR(p.T_cam_board.R().col(2).z(), 1.0, 1e-9);
   // Long side in pixels (pinhole part) = 33% of the width, unless the region is wider.
@@ -158,7 +158,7 @@ TEST(PoseGen, TallRegionsGetARotatedBoard) {
   bool saw_rotated = false;
   for (int k = 0; k < 6; ++k) {
     const TargetPose p = pg.next_pose(4, cam);
-    if (p.kind != "distortion") break;
+    if (p.kind != TargetKind::kDistortion) break;
     if (p.region.height > p.region.width) {
       // Board x (its long side) runs along the image's y axis.
       EXPECT_NEAR(std::abs(p.T_cam_board.R()(1, 0)), 1.0, 1e-9);
@@ -176,10 +176,10 @@ TEST(PoseGen, FallsBackToAPinholePoseWhenNoRegionIsLeft) {
   int k = 0;
   for (; k < 200; ++k) {
     p = pg.next_pose(5, cam);
-    if (p.kind != "distortion") break;
+    if (p.kind != TargetKind::kDistortion) break;
   }
   ASSERT_LT(k, 200) << "the mask never filled";
-  EXPECT_EQ(p.kind, "pinhole");
+  EXPECT_EQ(p.kind, TargetKind::kPinhole);
   EXPECT_NE(p.note.find("no distorted region left"), std::string::npos) << p.note;
 }
 

@@ -172,7 +172,7 @@ TEST(ViewCandidates, ShortlistIsTheBestScreenedPredictedExactly) {
   double best_exact = 1e300;
   for (const ViewCandidates::Exact& e : list) {
     ASSERT_NE(e.target, nullptr);
-    EXPECT_EQ(e.target->kind, "view");
+    EXPECT_EQ(e.target->kind, TargetKind::kView);
     EXPECT_TRUE(board_fully_visible(est, st.board, e.target->T_cam_board, vs.margin_px));
     const CovariancePrediction ref = predict_covariance(
         st.information, st.gram, frame_information(est, e.target->T_cam_board, st.board.corners(), st.result.fixed));

@@ -1,0 +1,338 @@
+// Calibration: Zhang's initial solution (OpenCV) refined by a Ceres bundle adjustment over the
+// intrinsics and every frame's board pose (paper eq. 3); the covariance is covariance.cpp's.
+#include <ceres/ceres.h>
+#include <ceres/rotation.h>
+#include <glog/logging.h>
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <cstdlib>
+#include <mutex>
+#include <opencv2/calib3d.hpp>
+
+#include "calib/calibration.hpp"
+#include "calib/pose_estimation.hpp"
+#include "calib/solve_internal.hpp"
+#include "common/error.hpp"
+
+namespace posecal {
+
+const char* solver_termination_name(SolverTermination t) {
+  switch (t) {
+    case SolverTermination::kConvergence: return "convergence";
+    case SolverTermination::kNoConvergence: return "no_convergence";
+  }
+  return "unknown";
+}
+
+bool CalibrationOptions::is_valid(std::string* error) const {
+  auto fail = [&](const std::string& why) {
+    if (error) *error = why;
+    return false;
+  };
+  if (max_iterations < 1 || max_iterations > 10000)
+    return fail("max_iterations must be in [1, 10000]");
+  if (!(function_tolerance > 0) || !(parameter_tolerance > 0))
+    return fail("tolerances must be > 0");
+  if (!(max_relative_focal_std > 0)) return fail("max_relative_focal_std must be > 0");
+  const auto& names = intrinsic_names(lens_model);
+  for (const auto& f : fixed) {
+    if (std::find(names.begin(), names.end(), f) == names.end()) {
+      return fail("unknown parameter '" + f + "' in fixed list");
+    }
+  }
+  return true;
+}
+
+namespace {
+
+// Reprojection residual of one board point (paper eq. 3): pi(P; R, t, C) - p, lens model M.
+template <class M>
+struct ReprojectionCost {
+  static constexpr int N = kNumParamsOf<M>;
+  double u, v;
+  double X, Y, Z;
+  double aspect;  // > 0: fy is fx * aspect (fixed aspect ratio)
+
+  template <typename T>
+  bool operator()(const T* intrinsics, const T* rt, T* residual) const {
+    const T P[3] = {T(X), T(Y), T(Z)};
+    T pc[3];
+    ceres::AngleAxisRotatePoint(rt, P, pc);
+    pc[0] += rt[3];
+    pc[1] += rt[4];
+    pc[2] += rt[5];
+    if (!(pc[2] > T(1e-9))) return false;  // behind the camera: reject the step
+    T params[N];
+    for (int i = 0; i < N; ++i) params[i] = intrinsics[i];
+    if (aspect > 0) params[1] = params[0] * T(aspect);
+    T uv[2];
+    project_with<M>(params, pc, uv);
+    residual[0] = uv[0] - T(u);
+    residual[1] = uv[1] - T(v);
+    return true;
+  }
+};
+
+ceres::CostFunction* make_cost(LensModel model, const cv::Point2d& p, const cv::Point3d& P,
+                               double aspect) {
+  return with_lens_model(model, [&](auto m) -> ceres::CostFunction* {
+    using Cost = ReprojectionCost<decltype(m)>;
+    return new ceres::AutoDiffCostFunction<Cost, 2, Cost::N, 6>(new Cost{p.x, p.y, P.x, P.y, P.z, aspect});
+  });
+}
+
+void check_frames(const std::vector<Observation>& frames) {
+  if (frames.empty()) throw Error(ErrorCode::kInvalidArgument, "calibration: no frames");
+  for (size_t f = 0; f < frames.size(); ++f) {
+    const Observation& o = frames[f];
+    if (o.image_points.size() != o.board_points.size()) {
+      throw Error(ErrorCode::kInvalidArgument,
+                  "calibration: frame " + std::to_string(f) + " has " +
+                      std::to_string(o.image_points.size()) + " image points but " +
+                      std::to_string(o.board_points.size()) + " board points");
+    }
+    if (o.size() < 4) {
+      throw Error(ErrorCode::kDegenerate, "calibration: frame " + std::to_string(f) + " has only " +
+                                              std::to_string(o.size()) +
+                                              " points; a pose needs at least 4");
+    }
+    for (size_t i = 0; i < o.size(); ++i) {
+      const auto& p = o.image_points[i];
+      const auto& P = o.board_points[i];
+      if (!std::isfinite(p.x) || !std::isfinite(p.y) || !std::isfinite(P.x) ||
+          !std::isfinite(P.y) || !std::isfinite(P.z)) {
+        throw Error(ErrorCode::kInvalidArgument, "calibration: frame " + std::to_string(f) +
+                                                     " has a non-finite point (index " +
+                                                     std::to_string(i) + ")");
+      }
+    }
+  }
+}
+
+// Zhang's method as OpenCV implements it, pinhole only (distortion held at zero): a stable start
+// for the full bundle adjustment, which then frees the distortion.
+bool zhang_initial(const std::vector<Observation>& frames, cv::Size size, LensModel lens, bool fix_pp,
+                   bool fix_aspect, CameraModel* model, std::vector<Pose>* poses) {
+  std::vector<std::vector<cv::Point3f>> obj;
+  std::vector<std::vector<cv::Point2f>> img;
+  for (const auto& f : frames) {
+    obj.emplace_back(f.board_points.begin(), f.board_points.end());
+    img.emplace_back(f.image_points.begin(), f.image_points.end());
+  }
+  int flags = cv::CALIB_FIX_K1 | cv::CALIB_FIX_K2 | cv::CALIB_FIX_K3 | cv::CALIB_ZERO_TANGENT_DIST;
+  if (fix_pp) flags |= cv::CALIB_FIX_PRINCIPAL_POINT;
+  if (fix_aspect) flags |= cv::CALIB_FIX_ASPECT_RATIO;
+  cv::Mat K = (cv::Mat_<double>(3, 3) << 1, 0, (size.width - 1) * 0.5, 0, 1,
+               (size.height - 1) * 0.5, 0, 0, 1);
+  cv::Mat D = cv::Mat::zeros(1, 5, CV_64F);
+  std::vector<cv::Mat> rvecs, tvecs;
+  try {
+    if (fix_pp || fix_aspect) {
+      // OpenCV needs a starting K for these flags; take its closed-form guess (pp at centre).
+      cv::Mat K0 = cv::initCameraMatrix2D(obj, img, size, 1.0);
+      if (!cv::checkRange(K0) || K0.at<double>(0, 0) <= 0) return false;
+      K.at<double>(0, 0) = K0.at<double>(0, 0);
+      K.at<double>(1, 1) = fix_aspect ? K0.at<double>(0, 0) : K0.at<double>(1, 1);
+      flags |= cv::CALIB_USE_INTRINSIC_GUESS;
+    }
+    cv::calibrateCamera(
+        obj, img, size, K, D, rvecs, tvecs, flags,
+        cv::TermCriteria(cv::TermCriteria::COUNT + cv::TermCriteria::EPS, 30, 1e-9));
+  } catch (const cv::Exception&) {
+    return false;
+  }
+  if (!cv::checkRange(K) || K.at<double>(0, 0) <= 0 || K.at<double>(1, 1) <= 0) return false;
+  *model = CameraModel::pinhole(lens, size.width, size.height, K.at<double>(0, 0), K.at<double>(1, 1),
+                                K.at<double>(0, 2), K.at<double>(1, 2));
+  poses->clear();
+  for (size_t i = 0; i < rvecs.size(); ++i) {
+    Pose p;
+    p.r << rvecs[i].at<double>(0), rvecs[i].at<double>(1), rvecs[i].at<double>(2);
+    p.t << tvecs[i].at<double>(0), tvecs[i].at<double>(1), tvecs[i].at<double>(2);
+    if (!p.is_finite()) return false;
+    poses->push_back(p);
+  }
+  return true;
+}
+
+// Ceres logs a warning through glog whenever Levenberg-Marquardt rejects a step (normal for the
+// degenerate single views the bootstrap tries). posecal runs inside other people's processes and
+// must not write to their stderr: raise glog's threshold to ERROR once, unless
+// POSECAL_CERES_LOG is set (a host that uses glog itself can also set FLAGS_minloglevel back).
+void quiet_ceres_logging() {
+  static std::once_flag once;
+  std::call_once(once, [] {
+    if (std::getenv("POSECAL_CERES_LOG") == nullptr && FLAGS_minloglevel < google::GLOG_ERROR) {
+      FLAGS_minloglevel = google::GLOG_ERROR;
+    }
+  });
+}
+
+// Which intrinsics the options hold fixed.
+std::vector<bool> fixed_intrinsics(const CalibrationOptions& options) {
+  const LensModel lens = options.lens_model;
+  const int n_intr = num_intrinsics(lens);
+  const auto& names = intrinsic_names(lens);
+  std::vector<bool> fixed(n_intr, false);
+  auto fix = [&](const std::string& name) {
+    const auto it = std::find(names.begin(), names.end(), name);
+    if (it != names.end()) fixed[it - names.begin()] = true;
+  };
+  if (options.fix_principal_point) fix("cx"), fix("cy");
+  if (options.fix_aspect_ratio) fix("fy");
+  if (options.zero_tangential) fix("p1"), fix("p2");
+  if (options.zero_distortion) {
+    for (int i = kNumPinholeParams; i < n_intr; ++i) fixed[i] = true;
+  }
+  for (const auto& f : options.fixed) fix(f);
+  if (std::count(fixed.begin(), fixed.end(), false) == 0) {
+    throw Error(ErrorCode::kInvalidArgument, "calibration: every parameter fixed");
+  }
+  return fixed;
+}
+
+// The starting point of the bundle adjustment: the warm start where it fits (frames beyond its
+// poses get theirs from PnP), else Zhang's method; parameters fixed at zero start at zero.
+void initial_solution(const std::vector<Observation>& frames, cv::Size image_size, const CalibrationOptions& options,
+                      const WarmStart* warm_start, const std::vector<bool>& fixed, CameraModel* model,
+                      std::vector<Pose>* poses) {
+  const LensModel lens = options.lens_model;
+  if (warm_start != nullptr && warm_start->model.lens_model() == lens &&
+      warm_start->model.size() == image_size && warm_start->model.is_valid()) {
+    *model = warm_start->model;
+    for (size_t i = 0; i < frames.size(); ++i) {
+      Pose p;
+      if (i < warm_start->poses.size() && warm_start->poses[i].is_finite()) {
+        p = warm_start->poses[i];
+      } else if (!estimate_pose(*model, frames[i], &p)) {
+        throw Error(ErrorCode::kDegenerate,
+                    "calibration: cannot find the board pose of frame " + std::to_string(i));
+      }
+      poses->push_back(p);
+    }
+  } else if (!zhang_initial(frames, image_size, lens, options.fix_principal_point, options.fix_aspect_ratio, model,
+                            poses)) {
+    throw Error(ErrorCode::kDegenerate,
+                "calibration: no initial solution (Zhang's method failed): the views do not "
+                "determine the focal length, e.g. they are all parallel to the image plane");
+  }
+  const auto& names = intrinsic_names(lens);
+  for (int i = kNumPinholeParams; i < num_intrinsics(lens); ++i) {
+    if (fixed[i] && (options.zero_distortion ||
+                     (options.zero_tangential && (names[i] == "p1" || names[i] == "p2")))) {
+      model->params()[i] = 0.0;
+    }
+  }
+}
+
+// The bundle adjustment's residual blocks (one per point) and the subset manifold of the fixed
+// intrinsics, over the blocks of *solution.
+void build_problem(const std::vector<Observation>& frames, LensModel lens, double aspect, const std::vector<bool>& fixed,
+                   calib_internal::Solution* solution, ceres::Problem* problem) {
+  for (size_t i = 0; i < frames.size(); ++i) {
+    for (size_t k = 0; k < frames[i].size(); ++k) {
+      problem->AddResidualBlock(make_cost(lens, frames[i].image_points[k], frames[i].board_points[k], aspect),
+                                nullptr, solution->intrinsics.data(), solution->rt[i].data());
+    }
+  }
+  std::vector<int> fixed_idx;
+  for (int i = 0; i < static_cast<int>(fixed.size()); ++i)
+    if (fixed[i]) fixed_idx.push_back(i);
+  if (!fixed_idx.empty()) {
+    problem->SetManifold(solution->intrinsics.data(),
+                         new ceres::SubsetManifold(static_cast<int>(fixed.size()), fixed_idx));
+  }
+}
+
+ceres::Solver::Summary solve_problem(const CalibrationOptions& options, ceres::Problem* problem) {
+  ceres::Solver::Options sopt;
+  sopt.linear_solver_type = ceres::DENSE_SCHUR;
+  sopt.max_num_iterations = options.max_iterations;
+  sopt.function_tolerance = options.function_tolerance;
+  sopt.parameter_tolerance = options.parameter_tolerance;
+  sopt.gradient_tolerance = 1e-14;
+  sopt.num_threads = 1;
+  sopt.logging_type = ceres::SILENT;
+  sopt.minimizer_progress_to_stdout = false;
+  ceres::Solver::Summary summary;
+  ceres::Solve(sopt, problem, &summary);
+  if (summary.termination_type == ceres::FAILURE || !summary.IsSolutionUsable()) {
+    throw Error(ErrorCode::kDegenerate,
+                "calibration: bundle adjustment failed: " + summary.message);
+  }
+  return summary;
+}
+
+}  // namespace
+
+CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size image_size,
+                            const CalibrationOptions& options, const WarmStart* warm_start) {
+  quiet_ceres_logging();
+  const auto t0 = std::chrono::steady_clock::now();
+  std::string why;
+  if (!options.is_valid(&why))
+    throw Error(ErrorCode::kInvalidArgument, "calibration options: " + why);
+  if (image_size.width <= 0 || image_size.height <= 0) {
+    throw Error(ErrorCode::kInvalidArgument, "calibration: image size must be positive");
+  }
+  check_frames(frames);
+  const LensModel lens = options.lens_model;
+  const std::vector<bool> fixed = fixed_intrinsics(options);
+  const int n_free_intr = static_cast<int>(std::count(fixed.begin(), fixed.end(), false));
+  int n_points = 0;
+  for (const auto& f : frames) n_points += static_cast<int>(f.size());
+  const int n_unknowns = n_free_intr + 6 * static_cast<int>(frames.size());
+  if (2 * n_points <= n_unknowns) {
+    throw Error(ErrorCode::kDegenerate, "calibration: too few points: " + std::to_string(n_points) +
+                                            " points give " + std::to_string(2 * n_points) +
+                                            " constraints for " + std::to_string(n_unknowns) +
+                                            " unknowns");
+  }
+  CameraModel model;
+  std::vector<Pose> poses;
+  initial_solution(frames, image_size, options, warm_start, fixed, &model, &poses);
+  const double aspect = options.fix_aspect_ratio ? model.fy() / model.fx() : 0.0;
+
+  // Bundle adjustment (paper eq. 3).
+  calib_internal::Solution solution{model.params(), std::vector<std::array<double, 6>>(frames.size())};
+  for (size_t i = 0; i < frames.size(); ++i) {
+    for (int k = 0; k < 3; ++k) {
+      solution.rt[i][k] = poses[i].r[k];
+      solution.rt[i][3 + k] = poses[i].t[k];
+    }
+  }
+  ceres::Problem::Options popt;
+  ceres::Problem problem(popt);
+  build_problem(frames, lens, aspect, fixed, &solution, &problem);
+  const ceres::Solver::Summary summary = solve_problem(options, &problem);
+  std::vector<double>& intr = solution.intrinsics;
+  if (aspect > 0) intr[1] = intr[0] * aspect;
+
+  CalibrationResult res;
+  res.model = CameraModel(image_size.width, image_size.height, lens, intr);
+  if (!res.model.is_valid(&why)) {
+    throw Error(ErrorCode::kDegenerate, "calibration: solution is not a valid camera: " + why);
+  }
+  res.fixed = fixed;
+  res.num_points = n_points;
+  res.num_unknowns = n_unknowns;
+  res.iterations = static_cast<int>(summary.iterations.size());
+  res.termination = summary.termination_type == ceres::CONVERGENCE ? SolverTermination::kConvergence
+                                                                   : SolverTermination::kNoConvergence;
+  res.termination_message = summary.message;
+  res.poses.resize(frames.size());
+  for (size_t i = 0; i < frames.size(); ++i) {
+    res.poses[i].r << solution.rt[i][0], solution.rt[i][1], solution.rt[i][2];
+    res.poses[i].t << solution.rt[i][3], solution.rt[i][4], solution.rt[i][5];
+  }
+  calib_internal::CovarianceInput in{&frames, fixed, aspect, n_points, n_unknowns, &intrinsic_names(lens),
+                                     options.max_relative_focal_std};
+  calib_internal::covariance_at_solution(problem, solution, in, &res);
+  res.solve_ms =
+      std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+  return res;
+}
+
+}  // namespace posecal

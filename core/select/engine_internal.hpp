@@ -1,0 +1,131 @@
+// Internal to select/: the engine's state, shared by the files that implement it:
+//   engine.cpp        the state machine: frames in, states, keyframe capture, recalibration
+//   bootstrap.cpp     the single-view focal-length fit before the first target (paper §3.4)
+//   convergence.cpp   the ratio test and the prospective test (paper §4.1)
+//   target_choice.cpp MaxIOD and the choice of the next target among rule poses and views
+//   guidance.cpp      what the operator is told, and what a guided camera is given
+//   overlay.cpp       the drawing of the target over the camera image
+#pragma once
+
+#include <limits>
+#include <optional>
+#include <random>
+#include <string>
+#include <vector>
+
+#include "select/engine.hpp"
+#include "select/view_candidates.hpp"
+
+namespace posecal {
+
+struct CalibrationEngine::Impl {
+  cv::Size size;
+  EngineOptions opt;
+  Board board;
+  PoseGenerator posegen;
+  std::function<void(const EngineEvent&)> callback;
+
+  EngineState state = EngineState::kWaitingForBoard;
+  std::string failure;
+  CameraModel estimate;  // current intrinsics
+  double best_bootstrap_rms = std::numeric_limits<double>::infinity();  // relative std of f
+  bool have_bootstrap = false;
+  std::optional<TargetPose> target;
+  int target_param = -1;
+  uint64_t target_serial = 0;
+  uint64_t target_since_frame = 0;
+
+  std::vector<Observation> keyframes;
+  std::vector<int> keyframe_target;  // parameter each keyframe was captured for (-1: init)
+  std::optional<CalibrationResult> result;
+  Eigen::MatrixXd information;  // marginal information of the free intrinsics (scoring)
+  Eigen::MatrixXd gram;         // projection_gram() of the estimate (projection scoring)
+  // EngineOptions::view_candidates: the pool for the next choice, drawn frame by frame, and the
+  // pool of the last choice (for replacing skipped targets).
+  std::vector<ViewPose> view_pool, view_pool_used;
+  std::mt19937_64 view_rng{0x5eed0000u};
+  std::vector<Pose> skipped_views;  // view targets skipped since the last keyframe
+  std::vector<bool> param_converged;
+  std::vector<int> param_targeted;
+  int group_keyframes[2] = {0, 0};  // refinement keyframes captured per parameter group
+
+  Detection previous;
+  bool robot_reached = false;
+  int crowded_frames = 0;  // consecutive still frames at the target with too few corners
+  static constexpr int kCrowdedFrames = 3;
+  uint64_t frame_index = 0;
+  FrameReport last;
+
+  Impl(cv::Size s, const EngineOptions& o);
+
+  // --- engine.cpp: the state machine ---
+  void emit(EngineEvent e);
+  void set_state(EngineState s, const std::string& message = "");
+  void fail(const std::string& why);
+  void set_target(TargetPose t, int param);
+  // Points needed per keyframe so that constraints >= factor x unknowns (paper §4.3).
+  int corners_required() const;
+  FrameReport process(const cv::Mat& image);
+  // process() in steps.
+  void measure_stillness(const Detection& det, FrameReport* r);
+  void bootstrap_step(const Detection& det, const FrameReport& r);
+  std::optional<Pose> current_pose(const Detection& det, FrameReport* r) const;
+  void capture_step(const Detection& det, FrameReport* r);
+  void move_target_back(int corners);
+  void capture(const Detection& det);
+  // Recalibrates with the keyframes; false (keyframe dropped, event emitted) if it is rejected.
+  bool recalibrate();
+  bool scoring() const { return opt.pose_candidates > 1 || opt.prospective_convergence; }
+
+  // --- bootstrap.cpp ---
+  int bootstrap_min_corners() const;
+  bool try_bootstrap(const Detection& det);
+
+  // --- convergence.cpp ---
+  // Relative reduction as the ratio test measures it (0 if there was no variance).
+  double reduction(double var_before, double var_after) const;
+  void mark_converged(int i, const std::string& why);
+  bool all_converged() const;
+  // Ratio test (paper §4.1) on the parameters of the targeted parameter's group.
+  void update_convergence(const CalibrationResult& prev, const CalibrationResult& now, int tgt);
+  // The prospective test: true (and the parameter converged) if even the pose about to be requested
+  // would reduce its variance by less than the threshold.
+  bool converges_prospectively(int param, double predicted_variance);
+
+  // --- target_choice.cpp ---
+  void choose_refinement_target();
+  int max_iod_parameter() const;
+  size_t pick_candidate(int param, const std::vector<TargetPose>& cands, ViewCandidates* views,
+                        std::vector<ViewCandidates::Exact>* shortlisted, double* pick_var) const;
+  ViewCandidates view_candidates();
+  ViewCandidates screen_views(const std::vector<ViewPose>& pool) const;
+  double view_margin_px() const;
+  void grow_view_pool(int n, int pool_size);
+  Eigen::MatrixXd predicted_covariance(const TargetPose& t) const;
+  int free_position(int param) const;
+  double predicted_variance(int param, const TargetPose& t) const;
+  double predicted_projection(const TargetPose& t) const;
+  void prepare_scoring();
+  TargetPose next_pose(int param);
+  static constexpr int kViewsPerFrame = 100;
+  // The frames draw this many times view_candidates: a view drawn under the previous estimate
+  // may not fit under the next one, and the choice takes the first view_candidates that do.
+  static constexpr int kPoolFactor = 2;
+  // Views predicted exactly per target: of 300 screened views the exact best was among the 8
+  // best screened in 97% of 168 choices and among the 16 best in 99.4% (explore_information
+  // --screening; docs/math.md); in closed loop, scoring all exactly changed no median.
+  static constexpr int kExactViews = 12;
+
+  // --- guidance.cpp ---
+  std::string guidance_text(const FrameReport& r, const std::optional<Pose>& current) const;
+  std::string alignment_hint(const Pose& current) const;
+};
+
+// "12.3%".
+std::string percent_text(double fraction);
+
+// The relative variance reduction the ratio test measures (var_before > 0): 1 - var'/var, or
+// 1 - sigma'/sigma for kStd.
+double variance_reduction(double var_before, double var_after, EngineOptions::ConvergenceMeasure measure);
+
+}  // namespace posecal
