@@ -12,7 +12,6 @@ namespace posecal::aravis {
 
 namespace {
 
-constexpr int kMaxQueueDepth = 64;
 // The pump thread's wait for a buffer: bounds how long stop() and teardown wait for it.
 constexpr guint64 kPumpPopTimeoutUs = 50000;
 constexpr auto kSupervisorTick = std::chrono::milliseconds(50);
@@ -105,9 +104,9 @@ void BufferPool::retire() {
 
 AravisCameraImpl::AravisCameraImpl(GPtr<ArvCamera> camera, DeviceInfo info, Locator locator,
                                    const AravisBackendOptions& options)
-    : options_(options),
-      info_(std::move(info)),
-      label_("camera '" + info_.uri + "'"),
+    : AravisCamera(info),
+      options_(options),
+      label_(label()),
       locator_(std::move(locator)),
       wakeup_(std::make_shared<SupervisorWakeup>()) {
   {
@@ -128,7 +127,7 @@ AravisCameraImpl::~AravisCameraImpl() {
     std::lock_guard<std::mutex> lock(device_mutex_);
     // Talking to a camera that is gone costs Aravis' full GVCP timeout per transaction.
     const Locator loc = locator();
-    const bool alive = state_.load() != CameraState::kDisconnected &&
+    const bool alive = state() != CameraState::kDisconnected &&
                        (!loc.gige || loc.address.empty() ||
                         gvcp_probe(loc.address, options_.probe_timeout_ms, options_.probe_retries));
     GPtr<ArvStream> stream = stop_locked(alive);
@@ -194,15 +193,6 @@ Locator AravisCameraImpl::locator() const {
   return locator_;
 }
 
-void AravisCameraImpl::require(std::initializer_list<CameraState> allowed, const char* what) const {
-  const CameraState s = state_.load();
-  for (CameraState a : allowed) {
-    if (a == s) return;
-  }
-  throw Error(ErrorCode::kState,
-              label_ + ": " + what + " is not allowed while the camera is " + camera_state_name(s));
-}
-
 // ---------------------------------------------------------------------------------------------
 // Configuration
 
@@ -249,12 +239,8 @@ CameraConfig AravisCameraImpl::validate_locked(const CameraConfig& requested) {
   CameraConfig out = requested;
   GErr err;
 
-  if (requested.queue_depth < 1) {
-    throw Error(ErrorCode::kInvalidArgument, label_ + ": queue_depth " +
-                                                 std::to_string(requested.queue_depth) +
-                                                 " is invalid (at least 1 frame)");
-  }
-  out.queue_depth = std::min(requested.queue_depth, kMaxQueueDepth);
+  // Camera::validate() has checked the queue depth (at most Camera::kMaxQueueDepth).
+  out.queue_depth = requested.queue_depth;
 
   // Pixel format: one the camera offers and the engine converter reads.
   guint n_formats = 0;
@@ -468,58 +454,43 @@ void AravisCameraImpl::record_locked(Setting setting) {
   settings_.push_back(std::move(setting));
 }
 
-CameraConfig AravisCameraImpl::current_config() {
+CameraConfig AravisCameraImpl::do_current_config() {
   std::lock_guard<std::mutex> lock(device_mutex_);
-  require({CameraState::kOpened, CameraState::kConfigured, CameraState::kStreaming},
-          "current_config()");
   return read_config_locked();
 }
 
-CameraConfig AravisCameraImpl::validate(const CameraConfig& requested) {
+CameraConfig AravisCameraImpl::do_validate(const CameraConfig& requested) {
   std::lock_guard<std::mutex> lock(device_mutex_);
-  require({CameraState::kOpened, CameraState::kConfigured, CameraState::kStreaming}, "validate()");
   return validate_locked(requested);
 }
 
-void AravisCameraImpl::configure(const CameraConfig& config) {
+void AravisCameraImpl::do_configure(const CameraConfig& valid) {
   std::lock_guard<std::mutex> lock(device_mutex_);
-  require({CameraState::kOpened, CameraState::kConfigured}, "configure()");
-  const CameraConfig valid = validate_locked(config);
   apply_config_locked(valid);
   record_locked(Setting{valid, "", ""});
   configured_ = true;
-  CameraState expected = CameraState::kOpened;
-  state_.compare_exchange_strong(expected, CameraState::kConfigured);
-  if (state_.load() == CameraState::kDisconnected) {
-    throw Error(ErrorCode::kDevice, label_ + " disconnected during configure()");
-  }
 }
 
 // ---------------------------------------------------------------------------------------------
 // Features
 
-std::vector<FeatureInfo> AravisCameraImpl::features() {
+std::vector<FeatureInfo> AravisCameraImpl::do_features() {
   std::lock_guard<std::mutex> lock(device_mutex_);
-  require({CameraState::kOpened, CameraState::kConfigured, CameraState::kStreaming}, "features()");
   return list_features(device_);
 }
 
-std::string AravisCameraImpl::get_feature(const std::string& name) {
+std::string AravisCameraImpl::do_get_feature(const std::string& name) {
   std::lock_guard<std::mutex> lock(device_mutex_);
-  require({CameraState::kOpened, CameraState::kConfigured, CameraState::kStreaming},
-          "get_feature()");
   return read_feature(device_, label_, name);
 }
 
-void AravisCameraImpl::set_feature(const std::string& name, const std::string& value) {
+void AravisCameraImpl::do_set_feature(const std::string& name, const std::string& value) {
   std::lock_guard<std::mutex> lock(device_mutex_);
-  require({CameraState::kOpened, CameraState::kConfigured, CameraState::kStreaming},
-          "set_feature()");
   if (is_acquisition_command(name)) {
     throw Error(ErrorCode::kInvalidArgument,
                 label_ + ": feature '" + name + "' is driven by start()/stop(), not set_feature()");
   }
-  if (state_.load() == CameraState::kStreaming && changes_payload(name)) {
+  if (state() == CameraState::kStreaming && changes_payload(name)) {
     throw Error(ErrorCode::kState, label_ + ": feature '" + name +
                                        "' changes the frame layout and cannot be set while "
                                        "streaming (stop() first)");
@@ -534,10 +505,8 @@ void AravisCameraImpl::write_feature_locked(const std::string& name, const std::
   if (f != nullptr && !ARV_IS_GC_COMMAND(f)) record_locked(Setting{std::nullopt, name, value});
 }
 
-std::map<std::string, std::string> AravisCameraImpl::lock_for_calibration() {
+std::map<std::string, std::string> AravisCameraImpl::do_lock_for_calibration() {
   std::lock_guard<std::mutex> lock(device_mutex_);
-  require({CameraState::kOpened, CameraState::kConfigured, CameraState::kStreaming},
-          "lock_for_calibration()");
   std::map<std::string, std::string> locked;
   // Automatic controls that would change the image (or, for focus, the intrinsics) mid-way.
   for (const char* name : {"ExposureAuto", "GainAuto", "BalanceWhiteAuto", "FocusAuto"}) {
@@ -572,20 +541,10 @@ std::map<std::string, std::string> AravisCameraImpl::lock_for_calibration() {
 // ---------------------------------------------------------------------------------------------
 // Streaming
 
-void AravisCameraImpl::start() {
+void AravisCameraImpl::do_start() {
   std::lock_guard<std::mutex> lock(device_mutex_);
-  require({CameraState::kOpened, CameraState::kConfigured}, "start()");
-  if (state_.load() == CameraState::kOpened) {
-    const CameraConfig defaults = validate_locked(CameraConfig{});
-    apply_config_locked(defaults);
-    record_locked(Setting{defaults, "", ""});
-    configured_ = true;
-    CameraState expected = CameraState::kOpened;
-    state_.compare_exchange_strong(expected, CameraState::kConfigured);
-  }
   start_locked();
-  CameraState expected = CameraState::kConfigured;
-  if (!state_.compare_exchange_strong(expected, CameraState::kStreaming)) {
+  if (state() == CameraState::kDisconnected) {
     // A disconnect was declared meanwhile; the supervisor's teardown releases the stream.
     throw Error(ErrorCode::kDevice, label_ + " disconnected during start()");
   }
@@ -661,14 +620,16 @@ GPtr<ArvStream> AravisCameraImpl::stop_locked(bool talk_to_camera) {
   return std::move(stream_);
 }
 
-void AravisCameraImpl::stop() {
+void AravisCameraImpl::do_stop() {
   std::lock_guard<std::mutex> lock(device_mutex_);
-  want_streaming_ = false;  // also while disconnected: do not resume after a reconnect
-  if (state_.load() != CameraState::kStreaming) return;
+  want_streaming_ = false;
   GPtr<ArvStream> stream = stop_locked(true);
   stream.reset();
-  CameraState expected = CameraState::kStreaming;
-  state_.compare_exchange_strong(expected, CameraState::kConfigured);
+}
+
+void AravisCameraImpl::do_stop_while_disconnected() {
+  std::lock_guard<std::mutex> lock(device_mutex_);
+  want_streaming_ = false;  // do not resume after a reconnect
 }
 
 void AravisCameraImpl::pump(std::shared_ptr<BufferPool> pool, ArvStream* stream) {
@@ -705,31 +666,25 @@ void AravisCameraImpl::pump(std::shared_ptr<BufferPool> pool, ArvStream* stream)
   }
 }
 
-FrameStatus AravisCameraImpl::next_frame(int timeout_ms, Frame* frame) {
-  if (frame == nullptr)
-    throw Error(ErrorCode::kInvalidArgument, label_ + ": next_frame(): frame is null");
-  if (timeout_ms < 0) {
-    throw Error(ErrorCode::kInvalidArgument,
-                label_ + ": next_frame(): negative timeout " + std::to_string(timeout_ms) + " ms");
-  }
-  CameraState s = state_.load();
-  if (s == CameraState::kDisconnected) return FrameStatus::kDisconnected;
-  if (s != CameraState::kStreaming) require({CameraState::kStreaming}, "next_frame()");
+FrameStatus AravisCameraImpl::do_next_frame(int timeout_ms, Frame* frame) {
+  CameraState s = state();
   const auto deadline = std::chrono::steady_clock::now() + std::chrono::milliseconds(timeout_ms);
   Queued item{};
   {
     std::unique_lock<std::mutex> lock(queue_mutex_);
     for (;;) {
-      s = state_.load();
+      s = state();
       if (s == CameraState::kDisconnected) return FrameStatus::kDisconnected;
       if (!queue_.empty()) {
         item = queue_.front();
         queue_.pop_front();
         break;
       }
-      if (s != CameraState::kStreaming) require({CameraState::kStreaming}, "next_frame()");
+      if (s != CameraState::kStreaming) {
+        throw Error(ErrorCode::kState, label_ + ": next_frame() while " + camera_state_name(s));
+      }
       if (queue_cv_.wait_until(lock, deadline) == std::cv_status::timeout && queue_.empty()) {
-        return state_.load() == CameraState::kDisconnected ? FrameStatus::kDisconnected
+        return state() == CameraState::kDisconnected ? FrameStatus::kDisconnected
                                                            : FrameStatus::kTimeout;
       }
     }
@@ -798,7 +753,7 @@ FrameStatus AravisCameraImpl::deliver(Queued item, Frame* frame) {
   return FrameStatus::kOk;
 }
 
-CameraStats AravisCameraImpl::stats() const {
+CameraStats AravisCameraImpl::do_stats() const {
   CameraStats s;
   s.frames_delivered = delivered_.load();
   s.frames_dropped = dropped_.load();
@@ -807,17 +762,13 @@ CameraStats AravisCameraImpl::stats() const {
   return s;
 }
 
-void AravisCameraImpl::set_event_callback(CameraEventCallback cb) {
-  std::lock_guard<std::mutex> lock(callback_mutex_);
-  callback_ = std::move(cb);
-}
-
 AravisTransportStats AravisCameraImpl::transport_stats() {
   std::lock_guard<std::mutex> lock(device_mutex_);
-  require({CameraState::kOpened, CameraState::kConfigured, CameraState::kStreaming},
-          "transport_stats()");
+  if (state() == CameraState::kDisconnected) {
+    throw Error(ErrorCode::kState, label_ + ": transport_stats() is not allowed while disconnected");
+  }
   AravisTransportStats t;
-  t.protocol = info_.transport;
+  t.protocol = info().transport;
   t.device_address = locator().address;
   if (arv_camera_is_gv_device(camera_.get())) {
     GErr err;
@@ -846,17 +797,7 @@ AravisTransportStats AravisCameraImpl::transport_stats() {
 // Supervisor: liveness, disconnect, reconnect
 
 void AravisCameraImpl::emit(CameraEvent::Kind kind, const std::string& message) {
-  CameraEventCallback cb;
-  {
-    std::lock_guard<std::mutex> lock(callback_mutex_);
-    cb = callback_;
-  }
-  if (!cb) return;
-  try {
-    cb(CameraEvent{kind, message});
-  } catch (...) {
-    // The host's callback must not take the backend thread down with it.
-  }
+  emit_event(CameraEvent{kind, message});
 }
 
 bool AravisCameraImpl::probe() {
@@ -886,7 +827,7 @@ void AravisCameraImpl::supervise() {
     wakeup_->wake = false;
     lock.unlock();
     const int64_t now = now_ns();
-    const CameraState s = state_.load();
+    const CameraState s = state();
     if (s == CameraState::kDisconnected) {
       if (options_.auto_reconnect && now >= next_attempt) {
         if (try_reconnect(++attempt)) {
@@ -933,7 +874,7 @@ void AravisCameraImpl::supervise() {
 void AravisCameraImpl::declare_disconnected(const std::string& why) {
   {
     std::lock_guard<std::mutex> lock(queue_mutex_);
-    if (state_.exchange(CameraState::kDisconnected) == CameraState::kDisconnected) return;
+    if (!mark_disconnected()) return;
     // Frames queued before the disconnect are stale; next_frame reports the disconnect now.
     dropped_ += queue_.size();
     for (Queued& q : queue_) q.pool->give_back(q.buffer);
@@ -1052,7 +993,7 @@ bool AravisCameraImpl::try_reconnect(int attempt) {
     }
     wakeup_->control_lost = false;
     last_buffer_ns_ = now_ns();
-    state_ = target_state;
+    mark_reconnected(target_state);
   }
   ++reconnects_;
   emit(CameraEvent::Kind::kReconnected,

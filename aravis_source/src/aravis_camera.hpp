@@ -66,21 +66,21 @@ class AravisCameraImpl final : public AravisCamera {
   AravisCameraImpl(const AravisCameraImpl&) = delete;
   AravisCameraImpl& operator=(const AravisCameraImpl&) = delete;
 
-  const DeviceInfo& info() const override { return info_; }
-  CameraState state() const override { return state_.load(); }
-  CameraConfig current_config() override;
-  CameraConfig validate(const CameraConfig& requested) override;
-  void configure(const CameraConfig& config) override;
-  std::vector<FeatureInfo> features() override;
-  std::string get_feature(const std::string& name) override;
-  void set_feature(const std::string& name, const std::string& value) override;
-  std::map<std::string, std::string> lock_for_calibration() override;
-  void start() override;
-  void stop() override;
-  FrameStatus next_frame(int timeout_ms, Frame* frame) override;
-  CameraStats stats() const override;
-  void set_event_callback(CameraEventCallback cb) override;
   AravisTransportStats transport_stats() override;
+
+ protected:
+  CameraConfig do_current_config() override;
+  CameraConfig do_validate(const CameraConfig& requested) override;
+  void do_configure(const CameraConfig& config) override;
+  std::vector<FeatureInfo> do_features() override;
+  std::string do_get_feature(const std::string& name) override;
+  void do_set_feature(const std::string& name, const std::string& value) override;
+  std::map<std::string, std::string> do_lock_for_calibration() override;
+  void do_start() override;
+  void do_stop() override;
+  void do_stop_while_disconnected() override;
+  FrameStatus do_next_frame(int timeout_ms, Frame* frame) override;
+  CameraStats do_stats() const override;
 
  private:
   // What the session asked for, replayed on a reconnected camera in the original order.
@@ -93,7 +93,6 @@ class AravisCameraImpl final : public AravisCamera {
     std::shared_ptr<BufferPool> pool;
   };
 
-  void require(std::initializer_list<CameraState> allowed, const char* what) const;
   // --- with device_mutex_ held ---
   void attach_locked(GPtr<ArvCamera> camera);
   GPtr<ArvCamera> detach_locked();
@@ -116,8 +115,7 @@ class AravisCameraImpl final : public AravisCamera {
   FrameStatus deliver(Queued item, Frame* frame);
 
   const AravisBackendOptions options_;
-  const DeviceInfo info_;
-  const std::string label_;  // "camera 'aravis://...'"
+  const std::string label_;  // "camera 'aravis://...'", Camera::label()
 
   mutable std::mutex device_mutex_;
   mutable std::mutex locator_mutex_;  // locator_ alone: the probe must not wait on GVCP calls
@@ -134,8 +132,6 @@ class AravisCameraImpl final : public AravisCamera {
   bool want_streaming_ = false;  // start() succeeded and stop() was not called since
   std::atomic<int> queue_depth_{4};
 
-  std::atomic<CameraState> state_{CameraState::kOpened};
-
   std::mutex queue_mutex_;
   std::condition_variable queue_cv_;
   std::deque<Queued> queue_;
@@ -144,9 +140,6 @@ class AravisCameraImpl final : public AravisCamera {
       zero_copy_{0}, copied_{0};
   std::atomic<int64_t> last_buffer_ns_{0};
   int64_t discard_until_ns_ = 0;  // frames before this (steady clock) are discarded (pump only)
-
-  std::mutex callback_mutex_;
-  CameraEventCallback callback_;
 
   std::shared_ptr<SupervisorWakeup> wakeup_;
   std::thread supervisor_;

@@ -100,15 +100,15 @@ ArvGcFeatureNode* find_feature(ArvDevice* device, const std::string& name) {
   return feature;
 }
 
-const char* feature_type(ArvGcFeatureNode* node) {
-  if (ARV_IS_GC_CATEGORY(node)) return nullptr;
-  if (ARV_IS_GC_ENUMERATION(node)) return "enumeration";
-  if (ARV_IS_GC_BOOLEAN(node)) return "boolean";
-  if (ARV_IS_GC_COMMAND(node)) return "command";
-  if (ARV_IS_GC_STRING(node)) return "string";
-  if (ARV_IS_GC_FLOAT(node)) return "float";
-  if (ARV_IS_GC_INTEGER(node)) return "integer";
-  return nullptr;
+std::optional<FeatureType> feature_type(ArvGcFeatureNode* node) {
+  if (ARV_IS_GC_CATEGORY(node)) return std::nullopt;
+  if (ARV_IS_GC_ENUMERATION(node)) return FeatureType::kEnumeration;
+  if (ARV_IS_GC_BOOLEAN(node)) return FeatureType::kBoolean;
+  if (ARV_IS_GC_COMMAND(node)) return FeatureType::kCommand;
+  if (ARV_IS_GC_STRING(node)) return FeatureType::kString;
+  if (ARV_IS_GC_FLOAT(node)) return FeatureType::kFloat;
+  if (ARV_IS_GC_INTEGER(node)) return FeatureType::kInteger;
+  return std::nullopt;
 }
 
 std::vector<std::string> enumeration_options(ArvGcFeatureNode* node) {
@@ -129,15 +129,14 @@ std::vector<std::string> enumeration_options(ArvGcFeatureNode* node) {
 FeatureInfo describe_feature(ArvGcFeatureNode* node) {
   FeatureInfo info;
   info.name = arv_gc_feature_node_get_name(node);
-  const char* type = feature_type(node);
-  info.type = type != nullptr ? type : "";
+  info.type = feature_type(node).value_or(FeatureType::kString);
   const ArvGcAccessMode access = arv_gc_feature_node_get_actual_access_mode(node);
   GErr err;
   const gboolean available = arv_gc_feature_node_is_available(node, err.out());
   const bool usable = err || available;
   err.reset();
   const gboolean locked = arv_gc_feature_node_is_locked(node, err.out());
-  const bool is_command = info.type == "command";
+  const bool is_command = info.type == FeatureType::kCommand;
   info.readable =
       usable && !is_command && (access == ARV_GC_ACCESS_MODE_RO || access == ARV_GC_ACCESS_MODE_RW);
   info.writable = usable && !(locked && !err) &&
@@ -190,7 +189,7 @@ std::vector<FeatureInfo> list_features(ArvDevice* device) {
   std::vector<FeatureInfo> out;
   for (const std::string& name : names) {
     ArvGcFeatureNode* f = find_feature(device, name);
-    if (f == nullptr || feature_type(f) == nullptr || !is_visible(f)) continue;
+    if (f == nullptr || !feature_type(f) || !is_visible(f)) continue;
     GErr err;
     const gboolean available = arv_gc_feature_node_is_available(f, err.out());
     if (!err && !available) continue;
@@ -202,11 +201,11 @@ std::vector<FeatureInfo> list_features(ArvDevice* device) {
 std::string read_feature(ArvDevice* device, const std::string& camera, const std::string& name) {
   ArvGcFeatureNode* f = find_feature(device, name);
   if (f == nullptr) throw Error(ErrorCode::kNotFound, camera + " has no feature '" + name + "'");
-  const char* type = feature_type(f);
-  if (type == nullptr || std::string(type) == "command") {
+  const std::optional<FeatureType> type = feature_type(f);
+  if (!type || *type == FeatureType::kCommand) {
     throw Error(ErrorCode::kInvalidArgument,
                 feature_prefix(camera, name) + " has no value (it is a " +
-                    (type != nullptr ? type : "category or register node") + ")");
+                    (type ? feature_type_name(*type) : "category or register node") + ")");
   }
   if (arv_gc_feature_node_get_actual_access_mode(f) == ARV_GC_ACCESS_MODE_WO) {
     throw Error(ErrorCode::kInvalidArgument, feature_prefix(camera, name) + " is write-only");
@@ -222,12 +221,12 @@ void write_feature(ArvDevice* device, const std::string& camera, const std::stri
   ArvGcFeatureNode* f = find_feature(device, name);
   if (f == nullptr) throw Error(ErrorCode::kNotFound, camera + " has no feature '" + name + "'");
   const std::string prefix = feature_prefix(camera, name);
-  const char* type_c = feature_type(f);
-  if (type_c == nullptr) {
+  const std::optional<FeatureType> type_or = feature_type(f);
+  if (!type_or) {
     throw Error(ErrorCode::kInvalidArgument,
                 prefix + " is not a value (category or register node)");
   }
-  const std::string type = type_c;
+  const FeatureType type = *type_or;
   if (arv_gc_feature_node_get_actual_access_mode(f) == ARV_GC_ACCESS_MODE_RO) {
     throw Error(ErrorCode::kInvalidArgument, prefix + " is read-only");
   }
@@ -242,13 +241,13 @@ void write_feature(ArvDevice* device, const std::string& camera, const std::stri
   if (!err && locked) throw Error(ErrorCode::kInvalidArgument, prefix + " is locked");
   const std::string bad = prefix + ": invalid value '" + value + "'";
   err.reset();
-  if (type == "command") {
+  if (type == FeatureType::kCommand) {
     const std::string v = lower(value);
     if (!(v.empty() || v == "execute" || v == "1" || v == "true")) {
       throw Error(ErrorCode::kInvalidArgument, bad + " (a command takes \"\" or \"execute\")");
     }
     arv_gc_command_execute(ARV_GC_COMMAND(f), err.out());
-  } else if (type == "boolean") {
+  } else if (type == FeatureType::kBoolean) {
     const std::string v = lower(value);
     bool b;
     if (v == "1" || v == "true" || v == "on") {
@@ -259,7 +258,7 @@ void write_feature(ArvDevice* device, const std::string& camera, const std::stri
       throw Error(ErrorCode::kInvalidArgument, bad + " (expected true or false)");
     }
     arv_gc_boolean_set_value(ARV_GC_BOOLEAN(f), b ? TRUE : FALSE, err.out());
-  } else if (type == "enumeration") {
+  } else if (type == FeatureType::kEnumeration) {
     const std::vector<std::string> options = enumeration_options(f);
     if (std::find(options.begin(), options.end(), value) == options.end()) {
       std::string list;
@@ -267,7 +266,7 @@ void write_feature(ArvDevice* device, const std::string& camera, const std::stri
       throw Error(ErrorCode::kInvalidArgument, bad + " (available: " + list + ")");
     }
     arv_gc_enumeration_set_string_value(ARV_GC_ENUMERATION(f), value.c_str(), err.out());
-  } else if (type == "string") {
+  } else if (type == FeatureType::kString) {
     GErr len_err;
     const gint64 max_length = arv_gc_string_get_max_length(ARV_GC_STRING(f), len_err.out());
     if (!len_err && max_length > 0 && static_cast<gint64>(value.size()) > max_length) {
@@ -275,7 +274,7 @@ void write_feature(ArvDevice* device, const std::string& camera, const std::stri
                   bad + " (longer than " + std::to_string(max_length) + " characters)");
     }
     arv_gc_string_set_value(ARV_GC_STRING(f), value.c_str(), err.out());
-  } else if (type == "float") {
+  } else if (type == FeatureType::kFloat) {
     double v;
     if (!parse_double(value, &v))
       throw Error(ErrorCode::kInvalidArgument, bad + " (expected a number)");

@@ -5,6 +5,7 @@
 
 #include <arv.h>
 
+#include <optional>
 #include <string>
 #include <vector>
 
@@ -14,9 +15,9 @@ namespace posecal::aravis {
 
 // The implemented feature node of that name, or nullptr.
 ArvGcFeatureNode* find_feature(ArvDevice* device, const std::string& name);
-// "integer", "float", "boolean", "enumeration", "string", "command"; nullptr for nodes that carry
+// The node's type; nullopt for nodes that carry
 // no value (categories, ports, enumeration entries).
-const char* feature_type(ArvGcFeatureNode* node);
+std::optional<FeatureType> feature_type(ArvGcFeatureNode* node);
 FeatureInfo describe_feature(ArvGcFeatureNode* node);
 
 // Every visible value feature: the category tree under "Root" first, then features that no

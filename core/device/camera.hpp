@@ -9,14 +9,30 @@
 //   images://DIR                               core: replays a folder in name order
 //   external                                   core: the host pushes frames
 //
-// Camera states (every call checks it and throws Error(kState) when not allowed):
+// Camera states, checked once for every backend by Camera's public calls (each throws
+// Error(kState) naming the camera, the call and the state when the call is not allowed), which
+// then call the backend's protected do_* hooks (libcamera's Camera / PipelineHandler split):
 //
 //   Opened --configure()--> Configured --start()--> Streaming --stop()--> Configured
-//      ^                                               |
-//      +------------- disconnect (any state) ----> Disconnected (only close/stats/info allowed;
-//                                                   a backend that reconnects by itself returns
-//                                                   to the state before the disconnect, so a
-//                                                   streaming session resumes; Aravis does)
+//      |      (start() from Opened configures with the camera's current settings first)
+//      +------------- disconnect (any state) ----> Disconnected (only info/state/stats/stop and
+//                                                   the event callback are allowed; next_frame()
+//                                                   returns kDisconnected; a backend that
+//                                                   reconnects by itself returns to the state
+//                                                   before the disconnect, so a streaming session
+//                                                   resumes; Aravis does)
+//
+//   call                          Opened  Configured  Streaming  Disconnected
+//   current_config, validate,      yes     yes         yes        kState
+//   features, get/set_feature,
+//   lock_for_calibration
+//   configure                      yes     yes         kState     kState
+//   start                          yes     yes         kState     kState
+//   stop                           no-op   no-op       yes        no-op
+//   next_frame                     kState  kState      yes        kDisconnected
+//
+// One queue-depth rule for every backend: validate() refuses queue_depth outside
+// [1, Camera::kMaxQueueDepth]; a backend may then lower it to what it can buffer (Adjusted).
 //
 // Threading: a Camera is used from one thread at a time (the session's). Backends may run
 // their own threads (Aravis' stream thread, libusb's hot-plug thread); the event callback is
@@ -24,10 +40,12 @@
 // the only blocking call and never waits longer than its timeout.
 #pragma once
 
+#include <atomic>
 #include <cstdint>
 #include <functional>
 #include <map>
 #include <memory>
+#include <mutex>
 #include <opencv2/core.hpp>
 #include <optional>
 #include <string>
@@ -97,9 +115,14 @@ struct CameraConfig {
   int queue_depth = 4;  // frames buffered before the oldest is dropped
 };
 
+// The type of a camera setting (GenICam feature node type, V4L2 control type).
+enum class FeatureType { kInteger, kFloat, kBoolean, kEnumeration, kString, kCommand };
+// "integer", "float", "boolean", "enumeration", "string", "command".
+const char* feature_type_name(FeatureType t);
+
 struct FeatureInfo {
   std::string name;
-  std::string type;   // "integer", "float", "boolean", "enumeration", "string", "command"
+  FeatureType type = FeatureType::kString;
   std::string value;  // current value as text ("" if not readable)
   bool readable = true;
   bool writable = false;
@@ -129,40 +152,93 @@ using CameraEventCallback = std::function<void(const CameraEvent&)>;
 
 class Camera {
  public:
+  static constexpr int kMaxQueueDepth = 64;
+
   virtual ~Camera() = default;
-  virtual const DeviceInfo& info() const = 0;
-  virtual CameraState state() const = 0;
+  Camera(const Camera&) = delete;
+  Camera& operator=(const Camera&) = delete;
+
+  const DeviceInfo& info() const { return info_; }
+  CameraState state() const { return followed_ ? followed_->state() : state_.load(); }
 
   // Settings. validate() never changes the camera.
-  virtual CameraConfig current_config() = 0;
-  virtual CameraConfig validate(const CameraConfig& requested) = 0;
-  virtual void configure(const CameraConfig& config) = 0;  // Opened/Configured only
+  CameraConfig current_config();
+  CameraConfig validate(const CameraConfig& requested);
+  void configure(const CameraConfig& config);
 
   // Generic feature access (GenICam feature, V4L2 control, ...). Throws Error(kNotFound) for an
   // unknown feature, Error(kInvalidArgument) for a read-only one or a bad value, naming both
   // the camera and the feature.
-  virtual std::vector<FeatureInfo> features() = 0;
-  virtual std::string get_feature(const std::string& name) = 0;
-  virtual void set_feature(const std::string& name, const std::string& value) = 0;
+  std::vector<FeatureInfo> features();
+  std::string get_feature(const std::string& name);
+  void set_feature(const std::string& name, const std::string& value);
 
   // Calibration lock: turns automatic exposure/gain/focus off, fixes their current values and
   // returns what was locked (name -> value), recorded in the calibration result.
-  virtual std::map<std::string, std::string> lock_for_calibration() = 0;
+  std::map<std::string, std::string> lock_for_calibration();
 
-  virtual void start() = 0;  // Configured -> Streaming (configures with defaults if Opened)
-  virtual void stop() = 0;   // Streaming -> Configured; no-op otherwise
+  void start();
+  void stop();
 
-  // Waits at most timeout_ms for the next frame (0: poll). Never blocks longer.
-  virtual FrameStatus next_frame(int timeout_ms, Frame* frame) = 0;
+  // Waits at most timeout_ms (>= 0; 0: poll) for the next frame. Never blocks longer.
+  FrameStatus next_frame(int timeout_ms, Frame* frame);
 
-  virtual CameraStats stats() const = 0;
-  virtual void set_event_callback(CameraEventCallback cb) = 0;
+  CameraStats stats() const { return do_stats(); }
+  // Called from a backend thread (disconnects, reconnects); must not call back into the camera.
+  void set_event_callback(CameraEventCallback cb);
 
   // Guided cameras (sim://) receive the engine's current target; others ignore it.
   virtual void guide(const GuidanceInfo& /*guidance*/) {}
   // A guided camera that moves the board itself (a simulated robot) returns true once when it
   // has reached the current target; the session then reports "pose reached" to the engine.
   virtual bool take_pose_reached() { return false; }
+
+ protected:
+  // `label` names the camera in messages ("camera '<uri>'" if empty).
+  explicit Camera(DeviceInfo info, std::string label = "");
+
+  // The backend's hooks, called after the state check (see the table above).
+  virtual CameraConfig do_current_config() = 0;
+  // `requested` has a queue depth in [1, kMaxQueueDepth].
+  virtual CameraConfig do_validate(const CameraConfig& requested) = 0;
+  // `config` comes from validate().
+  virtual void do_configure(const CameraConfig& config) = 0;
+  virtual std::vector<FeatureInfo> do_features() { return {}; }
+  virtual std::string do_get_feature(const std::string& name);                       // kNotFound
+  virtual void do_set_feature(const std::string& name, const std::string& value);    // kNotFound
+  virtual std::map<std::string, std::string> do_lock_for_calibration() { return {}; }
+  virtual void do_start() = 0;
+  virtual void do_stop() = 0;
+  // stop() while disconnected: a backend that reconnects by itself must not resume streaming.
+  virtual void do_stop_while_disconnected() {}
+  virtual FrameStatus do_next_frame(int timeout_ms, Frame* frame) = 0;
+  virtual CameraStats do_stats() const = 0;
+
+  // For backends, from any thread. The camera is gone: true if it was not disconnected already.
+  bool mark_disconnected();
+  // The camera is back (a reconnecting backend): the state before the disconnect.
+  void mark_reconnected(CameraState state);
+  // Delivers an event to the callback (if any), outside the backend's locks.
+  void emit_event(const CameraEvent& event) const;
+  const std::string& label() const { return label_; }
+  // A backend that learns its identity only once open (V4L2's QUERYCAP) sets it here, in its
+  // constructor (and the label; empty: "camera '<uri>'").
+  void set_info(DeviceInfo info, std::string label = "");
+  // A camera that wraps another (a test's decorator) takes the inner camera's state: the checks
+  // use it, and the inner camera's own calls make the transitions.
+  void follow_state_of(const Camera* inner) { followed_ = inner; }
+
+ private:
+  void require(std::initializer_list<CameraState> allowed, const char* call) const;
+  // Moves from one of `from` to `to`; throws Error(kDevice) if the camera disconnected meanwhile.
+  void transition(std::initializer_list<CameraState> from, CameraState to, const char* call);
+
+  DeviceInfo info_;
+  std::string label_;
+  std::atomic<CameraState> state_{CameraState::kOpened};
+  const Camera* followed_ = nullptr;
+  mutable std::mutex callback_mutex_;
+  CameraEventCallback callback_;
 };
 
 class CameraBackend {

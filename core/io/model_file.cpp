@@ -4,6 +4,7 @@
 #include <fstream>
 #include <opencv2/core/persistence.hpp>
 
+#include "common/clock.hpp"
 #include "common/error.hpp"
 
 namespace posecal {
@@ -76,12 +77,7 @@ void write_camera_model(const std::string& path, const CameraModel& model,
   } catch (const cv::Exception& e) {
     throw Error(ErrorCode::kIo, "cannot write calibration file '" + path + "': " + e.msg);
   }
-  char stamp[64];
-  const std::time_t now = std::time(nullptr);
-  std::tm tm_utc{};
-  gmtime_r(&now, &tm_utc);
-  std::strftime(stamp, sizeof stamp, "%Y-%m-%dT%H:%M:%SZ", &tm_utc);
-  fs << "calibration_time" << std::string(stamp);
+  fs << "calibration_time" << utc_now_iso8601();
   if (extras.nr_of_frames >= 0) fs << "nr_of_frames" << extras.nr_of_frames;
   fs << "image_width" << model.width();
   fs << "image_height" << model.height();

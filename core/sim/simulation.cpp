@@ -214,81 +214,28 @@ SimEvaluation evaluate_synthetic(const CameraModel& estimate, const CameraModel&
 
 namespace {
 
+DeviceInfo sim_info(const SimCameraOptions& o) {
+  DeviceInfo info;
+  info.uri = "sim://?seed=" + std::to_string(o.seed) + "&operator=" +
+             (o.op.kind == OperatorKind::kRobot ? "robot" : "person");
+  info.backend = "sim";
+  info.id = "sim-" + std::to_string(o.seed);
+  info.vendor = "posecal";
+  info.model = "synthetic camera " + std::to_string(o.truth.width()) + "x" + std::to_string(o.truth.height());
+  info.serial = "SIM" + std::to_string(o.seed);
+  info.transport = "simulated";
+  return info;
+}
+
 class SimCameraImpl final : public SimCamera {
  public:
   explicit SimCameraImpl(const SimCameraOptions& o)
-      : options_(o),
+      : SimCamera(sim_info(o)),
+        options_(o),
         board_(o.board),
         synthetic_(o.truth, board_, o.render),
-        operator_(o.truth, board_, o.op, o.seed * 0x9e3779b97f4a7c15ull + 17) {
-    info_.uri = "sim://?seed=" + std::to_string(o.seed) + "&operator=" +
-                (o.op.kind == OperatorKind::kRobot ? "robot" : "person");
-    info_.backend = "sim";
-    info_.id = "sim-" + std::to_string(o.seed);
-    info_.vendor = "posecal";
-    info_.model = "synthetic camera " + std::to_string(o.truth.width()) + "x" + std::to_string(o.truth.height());
-    info_.serial = "SIM" + std::to_string(o.seed);
-    info_.transport = "simulated";
-  }
-  const DeviceInfo& info() const override { return info_; }
-  CameraState state() const override { return state_; }
-  CameraConfig current_config() override { return config_; }
-  CameraConfig validate(const CameraConfig& r) override {
-    if (r.exposure_us || r.gain_db || r.roi) {
-      throw Error(ErrorCode::kUnsupported, "camera '" + info_.uri + "': simulated camera has fixed settings");
-    }
-    if (r.pixel_format && *r.pixel_format != PixelFormat::kMono8) {
-      throw Error(ErrorCode::kUnsupported, "camera '" + info_.uri + "' delivers Mono8 only");
-    }
-    return r;
-  }
-  void configure(const CameraConfig& c) override {
-    if (state_ == CameraState::kStreaming) throw Error(ErrorCode::kState, "camera '" + info_.uri + "': configure() while streaming");
-    config_ = validate(c);
-    state_ = CameraState::kConfigured;
-  }
-  std::vector<FeatureInfo> features() override {
-    auto num = [](double v) { return std::to_string(v); };
-    std::vector<FeatureInfo> out;
-    out.push_back({"Width", "integer", std::to_string(options_.truth.width()), true, false, "px", "", "", {}});
-    out.push_back({"Height", "integer", std::to_string(options_.truth.height()), true, false, "px", "", "", {}});
-    out.push_back({"NoiseSigma", "float", num(options_.render.noise_sigma), true, false, "grey levels", "", "", {}});
-    out.push_back({"BlurSigma", "float", num(options_.render.blur_sigma_px), true, false, "px", "", "", {}});
-    out.push_back({"Operator", "enumeration", options_.op.kind == OperatorKind::kRobot ? "robot" : "person", true, false, "", "", "", {"person", "robot"}});
-    return out;
-  }
-  std::string get_feature(const std::string& name) override {
-    for (const auto& f : features())
-      if (f.name == name) return f.value;
-    throw Error(ErrorCode::kNotFound, "camera '" + info_.uri + "' has no feature '" + name + "'");
-  }
-  void set_feature(const std::string& name, const std::string&) override {
-    for (const auto& f : features())
-      if (f.name == name) throw Error(ErrorCode::kInvalidArgument, "camera '" + info_.uri + "': feature '" + name + "' is read-only");
-    throw Error(ErrorCode::kNotFound, "camera '" + info_.uri + "' has no feature '" + name + "'");
-  }
-  std::map<std::string, std::string> lock_for_calibration() override {
-    return {{"exposure", std::to_string(options_.render.exposure)}, {"focus", "fixed (simulated)"}};
-  }
-  void start() override {
-    if (state_ == CameraState::kOpened) configure(config_);
-    state_ = CameraState::kStreaming;
-  }
-  void stop() override {
-    if (state_ == CameraState::kStreaming) state_ = CameraState::kConfigured;
-  }
-  FrameStatus next_frame(int, Frame* frame) override {
-    if (state_ != CameraState::kStreaming) throw Error(ErrorCode::kState, "camera '" + info_.uri + "': next_frame() while not streaming");
-    const Pose p = operator_.next_pose(guidance_);
-    frame->image = synthetic_.render(p);
-    frame->frame_id = frame_id_++;
-    frame->timestamp_ns = static_cast<int64_t>(frame->frame_id) * 33'333'333;
-    frame->source_format = PixelFormat::kMono8;
-    ++stats_.frames_delivered;
-    return FrameStatus::kOk;
-  }
-  CameraStats stats() const override { return stats_; }
-  void set_event_callback(CameraEventCallback) override {}
+        operator_(o.truth, board_, o.op, o.seed * 0x9e3779b97f4a7c15ull + 17) {}
+
   void guide(const GuidanceInfo& g) override { guidance_ = g; }
   bool take_pose_reached() override { return operator_.take_pose_reached(); }
 
@@ -297,15 +244,56 @@ class SimCameraImpl final : public SimCamera {
   const SimulatedOperator& op() const override { return operator_; }
   const SimCameraOptions& sim_options() const override { return options_; }
 
+ protected:
+  CameraConfig do_validate(const CameraConfig& r) override {
+    if (r.exposure_us || r.gain_db || r.roi) {
+      throw Error(ErrorCode::kUnsupported, label() + ": simulated camera has fixed settings");
+    }
+    if (r.pixel_format && *r.pixel_format != PixelFormat::kMono8) {
+      throw Error(ErrorCode::kUnsupported, label() + " delivers Mono8 only");
+    }
+    return r;
+  }
+  std::vector<FeatureInfo> do_features() override {
+    auto num = [](double v) { return std::to_string(v); };
+    const auto I = FeatureType::kInteger, F = FeatureType::kFloat;
+    std::vector<FeatureInfo> out;
+    out.push_back({"Width", I, std::to_string(options_.truth.width()), true, false, "px", "", "", {}});
+    out.push_back({"Height", I, std::to_string(options_.truth.height()), true, false, "px", "", "", {}});
+    out.push_back({"NoiseSigma", F, num(options_.render.noise_sigma), true, false, "grey levels", "", "", {}});
+    out.push_back({"BlurSigma", F, num(options_.render.blur_sigma_px), true, false, "px", "", "", {}});
+    out.push_back({"Operator", FeatureType::kEnumeration, options_.op.kind == OperatorKind::kRobot ? "robot" : "person",
+                   true, false, "", "", "", {"person", "robot"}});
+    return out;
+  }
+  std::string do_get_feature(const std::string& name) override {
+    for (const auto& f : do_features())
+      if (f.name == name) return f.value;
+    return SimCamera::do_get_feature(name);
+  }
+  void do_set_feature(const std::string& name, const std::string& value) override {
+    for (const auto& f : do_features())
+      if (f.name == name) throw Error(ErrorCode::kInvalidArgument, label() + ": feature '" + name + "' is read-only");
+    SimCamera::do_set_feature(name, value);
+  }
+  std::map<std::string, std::string> do_lock_for_calibration() override {
+    return {{"exposure", std::to_string(options_.render.exposure)}, {"focus", "fixed (simulated)"}};
+  }
+  FrameStatus do_next_frame(int, Frame* frame) override {
+    const Pose p = operator_.next_pose(guidance_);
+    frame->image = synthetic_.render(p);
+    frame->frame_id = frame_id_++;
+    frame->timestamp_ns = static_cast<int64_t>(frame->frame_id) * 33'333'333;
+    frame->source_format = PixelFormat::kMono8;
+    ++stats_.frames_delivered;
+    return FrameStatus::kOk;
+  }
+
  private:
   SimCameraOptions options_;
   Board board_;
   SyntheticCamera synthetic_;
   SimulatedOperator operator_;
-  DeviceInfo info_;
-  CameraState state_ = CameraState::kOpened;
-  CameraConfig config_;
-  CameraStats stats_;
   GuidanceInfo guidance_;
   uint64_t frame_id_ = 0;
 };

@@ -9,6 +9,7 @@
 #include <string>
 
 #include "device/camera.hpp"
+#include "device/sources.hpp"
 #include "select/engine.hpp"
 #include "sim/synthetic.hpp"
 
@@ -88,12 +89,15 @@ std::unique_ptr<Camera> make_sim_camera(const SimCameraOptions& options);
 // The simulated camera behind a Camera (nullptr if it is not one).
 SimCamera* as_sim_camera(Camera* camera);
 
-class SimCamera : public Camera {
+class SimCamera : public SimpleCamera {
  public:
   virtual const CameraModel& truth() const = 0;
   virtual SyntheticCamera& synthetic() = 0;
   virtual const SimulatedOperator& op() const = 0;
   virtual const SimCameraOptions& sim_options() const = 0;
+
+ protected:
+  using SimpleCamera::SimpleCamera;
 };
 
 // Evaluation of a synthetic calibration: eps_test on the fixed 50-frame test set rendered by

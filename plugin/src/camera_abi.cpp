@@ -27,10 +27,10 @@ const char* kEvalOptions = "evaluate options";
 // Feature values as JSON: numbers and booleans typed where the text parses, else the text.
 Json typed_value(const FeatureInfo& f) {
   if (!f.readable) return nullptr;
-  if (f.type == "integer" || f.type == "float") {
+  if (f.type == FeatureType::kInteger || f.type == FeatureType::kFloat) {
     try {
       size_t used = 0;
-      if (f.type == "integer") {
+      if (f.type == FeatureType::kInteger) {
         const long long v = std::stoll(f.value, &used);
         if (used == f.value.size()) return v;
       } else {
@@ -41,7 +41,7 @@ Json typed_value(const FeatureInfo& f) {
       // Not a number (e.g. "" for an unavailable value): report the text as it is.
     }
   }
-  if (f.type == "boolean") {
+  if (f.type == FeatureType::kBoolean) {
     if (f.value == "true" || f.value == "1") return true;
     if (f.value == "false" || f.value == "0") return false;
   }
@@ -52,7 +52,7 @@ Json typed_bound(const FeatureInfo& f, const std::string& text) {
   if (text.empty()) return nullptr;
   try {
     size_t used = 0;
-    if (f.type == "integer") {
+    if (f.type == FeatureType::kInteger) {
       const long long v = std::stoll(text, &used);
       if (used == text.size()) return v;
     }
@@ -68,7 +68,7 @@ Json typed_bound(const FeatureInfo& f, const std::string& text) {
 Json feature_json(const FeatureInfo& f) {
   Json j;
   j["name"] = f.name;
-  j["type"] = f.type;
+  j["type"] = feature_type_name(f.type);
   j["value"] = typed_value(f);
   j["access"] = f.readable && f.writable ? "read-write"
                 : f.readable             ? "read-only"

@@ -1,4 +1,5 @@
 #include "json_report.hpp"
+#include "abi_common.hpp"
 
 #include <cmath>
 
@@ -8,11 +9,6 @@
 namespace posecal::abi {
 
 namespace {
-
-// JSON has no NaN/Inf: a non-finite number is written as null, never as a valid-looking value.
-nlohmann::json number(double v) {
-  return std::isfinite(v) ? nlohmann::json(v) : nlohmann::json(nullptr);
-}
 
 bool ends_with(const std::string& s, const std::string& suffix) {
   return s.size() >= suffix.size() &&

@@ -12,6 +12,7 @@
 #include <opencv2/imgproc.hpp>
 
 #include "abi_common.hpp"
+#include "common/clock.hpp"
 #include "context.hpp"
 #include "evaluation.hpp"
 #include "json_report.hpp"
@@ -44,14 +45,6 @@ namespace {
 
 const char* kConfig = "session config";
 
-std::string utc_now() {
-  char buf[32];
-  const std::time_t t = std::time(nullptr);
-  std::tm tm{};
-  gmtime_r(&t, &tm);
-  std::strftime(buf, sizeof buf, "%Y-%m-%dT%H:%M:%SZ", &tm);
-  return buf;
-}
 
 // Calls not allowed from the session's own event callback (the engine is mid-frame there).
 void check_not_in_callback(const posecal_session* s, const char* call) {
@@ -226,7 +219,7 @@ void deliver(posecal_session* s, const SessionEvent& e) {
 }
 
 void note_finished(posecal_session* s) {
-  if (s->session->finished() && s->finished.empty()) s->finished = utc_now();
+  if (s->session->finished() && s->finished.empty()) s->finished = utc_now_iso8601();
 }
 
 Json status_json(posecal_session* s) {
@@ -346,7 +339,7 @@ POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char
     s->session = std::make_unique<CalibrationSession>(std::move(camera), eo, lock);
     posecal_session* raw = s.get();
     s->session->set_event_callback([raw](const SessionEvent& e) { deliver(raw, e); });
-    s->started = utc_now();
+    s->started = utc_now_iso8601();
     *out = s.release();
     return POSECAL_OK;
   });

@@ -168,9 +168,12 @@ std::map<std::string, AttemptStats> GuidedScene::attempts() const {
 
 GuidedCamera::GuidedCamera(std::unique_ptr<Camera> inner, std::shared_ptr<GuidedScene> scene,
                            Decoder decode)
-    : inner_(std::move(inner)), scene_(std::move(scene)), decode_(std::move(decode)) {}
+    : Camera(inner->info()), inner_(std::move(inner)), scene_(std::move(scene)), decode_(std::move(decode)) {
+  follow_state_of(inner_.get());
+  inner_->set_event_callback([this](const CameraEvent& e) { emit_event(e); });
+}
 
-FrameStatus GuidedCamera::next_frame(int timeout_ms, Frame* frame) {
+FrameStatus GuidedCamera::do_next_frame(int timeout_ms, Frame* frame) {
   const auto deadline = Clock::now() + std::chrono::milliseconds(timeout_ms);
   for (;;) {
     const auto left =

@@ -148,29 +148,6 @@ class GuidedCamera final : public Camera {
   using Decoder = std::function<cv::Mat(const std::vector<uint8_t>& payload)>;
   GuidedCamera(std::unique_ptr<Camera> inner, std::shared_ptr<GuidedScene> scene, Decoder decode);
 
-  const DeviceInfo& info() const override { return inner_->info(); }
-  CameraState state() const override { return inner_->state(); }
-  CameraConfig current_config() override { return inner_->current_config(); }
-  CameraConfig validate(const CameraConfig& c) override { return inner_->validate(c); }
-  void configure(const CameraConfig& c) override { inner_->configure(c); }
-  std::vector<FeatureInfo> features() override { return inner_->features(); }
-  std::string get_feature(const std::string& n) override { return inner_->get_feature(n); }
-  void set_feature(const std::string& n, const std::string& v) override {
-    inner_->set_feature(n, v);
-  }
-  std::map<std::string, std::string> lock_for_calibration() override {
-    return inner_->lock_for_calibration();
-  }
-  void start() override { inner_->start(); }
-  void stop() override { inner_->stop(); }
-  CameraStats stats() const override { return inner_->stats(); }
-  void set_event_callback(CameraEventCallback cb) override {
-    inner_->set_event_callback(std::move(cb));
-  }
-
-  // The next step not yet delivered, checked bit for bit; repeats are skipped. Never waits
-  // longer than timeout_ms; kTimeout, kDisconnected and kEndOfStream pass through.
-  FrameStatus next_frame(int timeout_ms, Frame* frame) override;
   void guide(const GuidanceInfo& guidance) override;
   bool take_pose_reached() override;
 
@@ -180,6 +157,20 @@ class GuidedCamera final : public Camera {
   // Description of the first corrupt or unknown frame ("" if none).
   std::string first_problem() const;
 
+ protected:
+  CameraConfig do_current_config() override { return inner_->current_config(); }
+  CameraConfig do_validate(const CameraConfig& c) override { return inner_->validate(c); }
+  void do_configure(const CameraConfig& c) override { inner_->configure(c); }
+  std::vector<FeatureInfo> do_features() override { return inner_->features(); }
+  std::string do_get_feature(const std::string& n) override { return inner_->get_feature(n); }
+  void do_set_feature(const std::string& n, const std::string& v) override { inner_->set_feature(n, v); }
+  std::map<std::string, std::string> do_lock_for_calibration() override { return inner_->lock_for_calibration(); }
+  void do_start() override { inner_->start(); }
+  void do_stop() override { inner_->stop(); }
+  CameraStats do_stats() const override { return inner_->stats(); }
+  // The next step not yet delivered, checked bit for bit; repeats are skipped. Never waits
+  // longer than timeout_ms; kTimeout, kDisconnected and kEndOfStream pass through.
+  FrameStatus do_next_frame(int timeout_ms, Frame* frame) override;
  private:
   std::unique_ptr<Camera> inner_;
   std::shared_ptr<GuidedScene> scene_;

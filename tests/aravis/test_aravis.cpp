@@ -253,23 +253,23 @@ TEST_F(AravisTest, FeaturesListGetSetAndErrors) {
   std::map<std::string, FeatureInfo> by_name;
   for (const auto& f : features) by_name[f.name] = f;
   ASSERT_TRUE(by_name.count("PixelFormat"));
-  EXPECT_EQ(by_name["PixelFormat"].type, "enumeration");
+  EXPECT_EQ(by_name["PixelFormat"].type, FeatureType::kEnumeration);
   EXPECT_EQ(by_name["PixelFormat"].value, "Mono8");
   const auto& opts = by_name["PixelFormat"].options;
   for (const char* f : {"Mono8", "Mono16", "RGB8", "BayerRG8"}) {
     EXPECT_NE(std::find(opts.begin(), opts.end(), f), opts.end()) << f;
   }
   ASSERT_TRUE(by_name.count("GainRaw"));  // listed although no category under Root holds it
-  EXPECT_EQ(by_name["GainRaw"].type, "integer");
+  EXPECT_EQ(by_name["GainRaw"].type, FeatureType::kInteger);
   EXPECT_EQ(by_name["GainRaw"].min, "0");
   EXPECT_EQ(by_name["GainRaw"].max, "10");
   EXPECT_TRUE(by_name["GainRaw"].writable);
   ASSERT_TRUE(by_name.count("ExposureTimeAbs"));
-  EXPECT_EQ(by_name["ExposureTimeAbs"].type, "float");
+  EXPECT_EQ(by_name["ExposureTimeAbs"].type, FeatureType::kFloat);
   ASSERT_TRUE(by_name.count("DeviceVendorName"));
   EXPECT_FALSE(by_name["DeviceVendorName"].writable);
   ASSERT_TRUE(by_name.count("AcquisitionStart"));
-  EXPECT_EQ(by_name["AcquisitionStart"].type, "command");
+  EXPECT_EQ(by_name["AcquisitionStart"].type, FeatureType::kCommand);
 
   cam->set_feature("GainRaw", "7");
   EXPECT_EQ(cam->get_feature("GainRaw"), "7");
@@ -320,13 +320,17 @@ TEST_F(AravisTest, ValidateAdjustsAndNeverTouchesTheCamera) {
   req.exposure_us = 5e7;                   // above the 1e7 maximum
   req.gain_db = 99;                        // GainRaw is 0..10
   req.frame_rate_hz = 5000;                // 1000 Hz maximum
-  req.queue_depth = 1000;
+  req.queue_depth = 64;
   const CameraConfig adj = cam->validate(req);
   EXPECT_EQ(*adj.roi, cv::Rect(0, 0, 2048, 2048));
   EXPECT_DOUBLE_EQ(*adj.exposure_us, 1e7);
   EXPECT_DOUBLE_EQ(*adj.gain_db, 10);
   EXPECT_DOUBLE_EQ(*adj.frame_rate_hz, 1000);
   EXPECT_EQ(adj.queue_depth, 64);
+  // The queue depth rule of every backend (Camera::validate): 1..64, refused outside.
+  CameraConfig deep;
+  deep.queue_depth = 1000;
+  EXPECT_THROW(cam->validate(deep), Error);
   // Offset kept, pushed back inside the sensor.
   req = {};
   req.roi = cv::Rect(2000, 100, 640, 480);

@@ -395,14 +395,14 @@ TEST_F(V4l2Camera_, ControlsAreEnumeratedWithV4l2CtlNames) {
   EXPECT_EQ(features.size(), 17u);  // the control classes are not features
   const FeatureInfo* focus = find_feature(features, "focus_absolute");
   ASSERT_TRUE(focus);
-  EXPECT_EQ(focus->type, "integer");
+  EXPECT_EQ(focus->type, FeatureType::kInteger);
   EXPECT_EQ(focus->min, "0");
   EXPECT_EQ(focus->max, "255");
   EXPECT_EQ(focus->value, "35");  // where autofocus put the lens
   EXPECT_FALSE(focus->writable);  // inactive while autofocus runs
   const FeatureInfo* ae = find_feature(features, "auto_exposure");
   ASSERT_TRUE(ae);
-  EXPECT_EQ(ae->type, "enumeration");
+  EXPECT_EQ(ae->type, FeatureType::kEnumeration);
   EXPECT_EQ(ae->value, "3");
   EXPECT_EQ(ae->options, (std::vector<std::string>{"1: Manual Mode", "3: Aperture Priority Mode"}));
   const FeatureInfo* exposure = find_feature(features, "exposure_time_absolute");
@@ -412,7 +412,7 @@ TEST_F(V4l2Camera_, ControlsAreEnumeratedWithV4l2CtlNames) {
   EXPECT_EQ(exposure->max, "2047");
   const FeatureInfo* af = find_feature(features, "focus_automatic_continuous");
   ASSERT_TRUE(af);
-  EXPECT_EQ(af->type, "boolean");
+  EXPECT_EQ(af->type, FeatureType::kBoolean);
   EXPECT_TRUE(af->writable);
 }
 
@@ -469,7 +469,7 @@ TEST_F(V4l2Camera_, LegacyDriverControlsReadOnlyAndButtons) {
   EXPECT_FALSE(temp->writable);
   const FeatureInfo* wb = find_feature(features, "do_white_balance");
   ASSERT_TRUE(wb);
-  EXPECT_EQ(wb->type, "command");
+  EXPECT_EQ(wb->type, FeatureType::kCommand);
   EXPECT_FALSE(wb->readable);
   expect_error(ErrorCode::kInvalidArgument, [&] { cam->set_feature("sensor_temperature", "20"); });
   expect_error(ErrorCode::kInvalidArgument, [&] { cam->get_feature("do_white_balance"); });

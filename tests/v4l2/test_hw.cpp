@@ -41,7 +41,7 @@ TEST(V4l2Hardware, StreamsFromARealCamera) {
                 f.sizes.size());
   }
   for (const auto& f : cam->features()) {
-    std::printf("  %-32s %-11s = %s [%s, %s]\n", f.name.c_str(), f.type.c_str(), f.value.c_str(),
+    std::printf("  %-32s %-11s = %s [%s, %s]\n", f.name.c_str(), feature_type_name(f.type), f.value.c_str(),
                 f.min.c_str(), f.max.c_str());
   }
   CameraConfig req;

@@ -107,6 +107,9 @@ class AravisCamera : public Camera {
  public:
   // Throws Error(kState) while disconnected.
   virtual AravisTransportStats transport_stats() = 0;
+
+ protected:
+  using Camera::Camera;
 };
 
 // The backend for the "aravis" scheme. Throws Error(kInvalidArgument) if the options are invalid.

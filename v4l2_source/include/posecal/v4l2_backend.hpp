@@ -106,6 +106,9 @@ class V4l2Camera : public Camera {
   virtual const std::vector<V4l2Format>& formats() const = 0;
   // True when the device lacks V4L2_CAP_STREAMING and frames are read with read().
   virtual bool uses_read_io() const = 0;
+
+ protected:
+  using Camera::Camera;
 };
 
 class V4l2Backend final : public CameraBackend {
