@@ -49,14 +49,20 @@ bool EngineOptions::is_valid(std::string* error) const {
   } catch (const Error& e) {
     return fail(std::string("target: ") + e.what());
   }
-  if (!(convergence_threshold > 0 && convergence_threshold < 1)) return fail("convergence_threshold must be in (0, 1)");
-  if (max_keyframes < 3 || max_keyframes > 1000) return fail("max_keyframes must be in [3, 1000]");
-  if (!(constraint_factor >= 1 && constraint_factor <= 50)) return fail("constraint_factor must be in [1, 50]");
-  if (!(still_motion_px > 0 && still_motion_px < 100)) return fail("still_motion_px must be in (0, 100)");
-  if (!(jaccard_threshold > 0 && jaccard_threshold < 1)) return fail("jaccard_threshold must be in (0, 1)");
-  if (target_timeout_frames < 0) return fail("target_timeout_frames must be >= 0");
-  if (pose_candidates < 1 || pose_candidates > 64) return fail("pose_candidates must be in [1, 64]");
-  if (view_candidates < 0 || view_candidates > 4096) return fail("view_candidates must be in [0, 4096]");
+  // The ranges of the session keys (core/session/session_keys.def), the one declaration of them.
+#define POSECAL_RANGE_Number(key, member, lo, hi) \
+  if (!(member >= lo && member <= hi)) return fail(#key " must be in [" #lo ", " #hi "]");
+#define POSECAL_RANGE_Integer(key, member, lo, hi) POSECAL_RANGE_Number(key, member, lo, hi)
+#define POSECAL_RANGE_Bool(key, member, lo, hi)
+#define POSECAL_RANGE_Choice(key, member, lo, hi)
+#define POSECAL_RANGE_Text(key, member, lo, hi)
+#define POSECAL_RANGE_TextList(key, member, lo, hi)
+#define POSECAL_RANGE_engine(kind, key, member, lo, hi) POSECAL_RANGE_##kind(key, member, lo, hi)
+#define POSECAL_RANGE_session(kind, key, member, lo, hi)
+#define POSECAL_KEY(scope, key, kind, member, lo, hi, choices, def, alias, doc) \
+  POSECAL_RANGE_##scope(kind, key, member, lo, hi)
+#include "session/session_keys.def"
+#undef POSECAL_KEY
   if (!measured_convergence && !prospective_convergence)
     return fail("measured_convergence and prospective_convergence cannot both be off");
   if (bootstrap_min_corners < 0) return fail("bootstrap_min_corners must be >= 0");

@@ -16,6 +16,7 @@
 #include "context.hpp"
 #include "evaluation.hpp"
 #include "json_report.hpp"
+#include "session_config.hpp"
 #include "posecal.h"
 #include "session/session.hpp"
 #include "sim/simulation.hpp"
@@ -74,61 +75,6 @@ Json event_json(const SessionEvent& e, std::string* kind) {
     j["message"] = e.message;
   }
   return j;
-}
-
-// A string option of the session config naming one of `values`; `def` when absent.
-template <typename T>
-T get_one_of(const Json& c, const char* key, T def, std::initializer_list<std::pair<const char*, T>> values) {
-  if (!c.contains(key)) return def;
-  const std::string v = abi::get_string(c, key, "", kConfig);
-  std::string allowed;
-  for (const auto& [name, value] : values) {
-    if (v == name) return value;
-    allowed += (allowed.empty() ? "\"" : " or \"") + std::string(name) + "\"";
-  }
-  throw Error(ErrorCode::kInvalidArgument,
-              std::string("session config: '") + key + "' must be " + allowed + ", got \"" + v + "\"");
-}
-
-EngineOptions engine_options(const Json& c, bool* lock_settings) {
-  using namespace posecal::abi;
-  EngineOptions o;
-  if (c.contains("target")) o.board = BoardSpec::parse(get_string(c, "target", "", kConfig));
-  if (c.contains("operator")) {
-    const std::string op = get_string(c, "operator", "", kConfig);
-    if (op != "person" && op != "robot") {
-      throw Error(ErrorCode::kInvalidArgument,
-                  "session config: 'operator' must be \"person\" or \"robot\"");
-    }
-    o.robot = op == "robot";
-  }
-  o.convergence_threshold =
-      get_double(c, "convergence_threshold", o.convergence_threshold, 1e-6, 0.999, kConfig);
-  o.max_keyframes = get_int(c, "max_keyframes", o.max_keyframes, 3, 1000, kConfig);
-  o.jaccard_threshold =
-      get_double(c, "jaccard_threshold", o.jaccard_threshold, 0.01, 0.999, kConfig);
-  o.still_motion_px = get_double(c, "still_motion_px", o.still_motion_px, 0.01, 99, kConfig);
-  o.constraint_factor = get_double(c, "constraint_factor", o.constraint_factor, 1, 50, kConfig);
-  o.target_timeout_frames =
-      get_int(c, "target_timeout_frames", o.target_timeout_frames, 0, 1000000, kConfig);
-  o.pose_candidates = get_int(c, "pose_candidates", o.pose_candidates, 1, 64, kConfig);
-  o.view_candidates = get_int(c, "view_candidates", o.view_candidates, 0, 4096, kConfig);
-  o.view_must_serve_target = get_bool(c, "view_must_serve_target", o.view_must_serve_target, kConfig);
-  o.posegen.max_tilt_deg = get_double(c, "max_tilt_deg", o.posegen.max_tilt_deg, 1, 89, kConfig);
-  *lock_settings = get_bool(c, "lock_settings", true, kConfig);
-  using Measure = EngineOptions::ConvergenceMeasure;
-  using Score = EngineOptions::CandidateScore;
-  o.convergence_measure = get_one_of<Measure>(c, "convergence_measure", o.convergence_measure,
-                                              {{"variance", Measure::kVariance}, {"std", Measure::kStd}});
-  o.measured_convergence = get_bool(c, "measured_convergence", o.measured_convergence, kConfig);
-  o.candidate_score = get_one_of<Score>(c, "candidate_score", o.candidate_score,
-                                        {{"projection", Score::kProjection}, {"variance", Score::kParameterVariance}});
-  // Intrinsics held at their initial value (distortion: 0), e.g. ["k2", "k3"] for a lens whose
-  // field of view is too narrow to observe them; the engine treats them as converged.
-  o.calibration.fixed = get_strings(c, "fixed", kConfig);
-  std::string why;
-  if (!o.is_valid(&why)) throw Error(ErrorCode::kInvalidArgument, "session config: " + why);
-  return o;
 }
 
 // A host image must have `size` (named `whose` in the error).
@@ -299,16 +245,10 @@ POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char
     *out = nullptr;
     require(ctx, "ctx");
     require(camera_uri, "camera_uri");
-    const Json c = abi::parse_options(
-        config_json,
-        {"target", "operator", "convergence_threshold", "max_keyframes", "jaccard_threshold",
-         "still_motion_px", "constraint_factor", "target_timeout_frames", "pose_candidates",
-         "lock_settings", "max_tilt_deg", "fixed", "convergence_measure",
-         "measured_convergence", "candidate_score", "view_candidates",
-         "view_must_serve_target"},
-        kConfig);
-    bool lock = true;
-    EngineOptions eo = engine_options(c, &lock);
+    const Json c = abi::parse_options(config_json, abi::session_config_keys(), kConfig);
+    const SessionOptions so_config = abi::session_options_from_json(c);
+    EngineOptions eo = so_config.engine;
+    const bool lock = so_config.lock_settings;
     const Uri uri = Uri::parse(camera_uri);
     ctx->impl->require_enabled(uri.scheme);
     auto s = std::make_unique<posecal_session>();
