@@ -6,6 +6,7 @@
 #include <cstdlib>
 
 #include "aravis_camera.hpp"
+#include "common/percent_encoding.hpp"
 #include "aravis_util.hpp"
 #include "common/error.hpp"
 
@@ -46,81 +47,67 @@ bool AravisBackendOptions::is_valid(std::string* error) const {
 namespace aravis {
 namespace {
 
+// The options a camera URI's query may set (aravis://ID?packet_size=8000&...), by name.
+struct UriOption {
+  const char* key;
+  int AravisBackendOptions::*int_field;    // or
+  bool AravisBackendOptions::*bool_field;
+};
+using O = AravisBackendOptions;
+constexpr UriOption kUriOptions[] = {
+    {"packet_size", &O::packet_size, nullptr},
+    {"packet_resend", nullptr, &O::packet_resend},  // also "always" / "never"
+    {"socket_buffer_size", &O::socket_buffer_size, nullptr},
+    {"packet_timeout_us", &O::packet_timeout_us, nullptr},
+    {"frame_retention_us", &O::frame_retention_us, nullptr},
+    {"packet_socket", nullptr, &O::packet_socket},
+    {"startup_discard_ms", &O::startup_discard_ms, nullptr},
+    {"extra_buffers", &O::extra_buffers, nullptr},
+    {"max_lent_buffers", &O::max_lent_buffers, nullptr},
+    {"zero_copy", nullptr, &O::zero_copy},
+    {"frame_timeout_ms", &O::frame_timeout_ms, nullptr},
+    {"idle_probe_interval_ms", &O::idle_probe_interval_ms, nullptr},
+    {"probe_timeout_ms", &O::probe_timeout_ms, nullptr},
+    {"probe_retries", &O::probe_retries, nullptr},
+    {"auto_reconnect", nullptr, &O::auto_reconnect},
+    {"reconnect_min_backoff_ms", &O::reconnect_min_backoff_ms, nullptr},
+    {"reconnect_max_backoff_ms", &O::reconnect_max_backoff_ms, nullptr},
+};
+
+// Sets one URI option; false if `value` is not of the option's kind.
+bool set_uri_option(const UriOption& opt, const std::string& value, AravisBackendOptions* o) {
+  if (opt.int_field) {
+    errno = 0;
+    char* end = nullptr;
+    const long v = std::strtol(value.c_str(), &end, 10);
+    if (value.empty() || errno != 0 || *end != '\0' || v < -(1L << 31) || v > (1L << 31) - 1) return false;
+    o->*opt.int_field = static_cast<int>(v);
+    return true;
+  }
+  if (value == "1" || value == "true" || (opt.bool_field == &O::packet_resend && value == "always")) {
+    o->*opt.bool_field = true;
+  } else if (value == "0" || value == "false" || (opt.bool_field == &O::packet_resend && value == "never")) {
+    o->*opt.bool_field = false;
+  } else {
+    return false;
+  }
+  return true;
+}
+
 AravisBackendOptions options_for(AravisBackendOptions o, const Uri& uri) {
   const std::string where = "camera URI '" + uri.text + "'";
   for (const auto& [key, value] : uri.query) {
-    auto bad = [&](const char* expected) {
-      return Error(ErrorCode::kInvalidArgument,
-                   where + ": option " + key + "=" + value + " is not " + expected);
-    };
-    auto as_int = [&](int* field) {
-      errno = 0;
-      char* end = nullptr;
-      const long v = std::strtol(value.c_str(), &end, 10);
-      if (value.empty() || errno != 0 || *end != '\0' || v < -(1L << 31) || v > (1L << 31) - 1) {
-        throw bad("an integer");
-      }
-      *field = static_cast<int>(v);
-    };
-    auto as_bool = [&](bool* field) {
-      if (value == "1" || value == "true") {
-        *field = true;
-      } else if (value == "0" || value == "false") {
-        *field = false;
-      } else {
-        throw bad("0/1/true/false");
-      }
-    };
-    if (key == "packet_size") {
-      as_int(&o.packet_size);
-    } else if (key == "packet_resend") {
-      if (value == "always") {
-        o.packet_resend = true;
-      } else if (value == "never") {
-        o.packet_resend = false;
-      } else {
-        as_bool(&o.packet_resend);
-      }
-    } else if (key == "socket_buffer_size") {
-      as_int(&o.socket_buffer_size);
-    } else if (key == "packet_timeout_us") {
-      as_int(&o.packet_timeout_us);
-    } else if (key == "frame_retention_us") {
-      as_int(&o.frame_retention_us);
-    } else if (key == "packet_socket") {
-      as_bool(&o.packet_socket);
-    } else if (key == "startup_discard_ms") {
-      as_int(&o.startup_discard_ms);
-    } else if (key == "extra_buffers") {
-      as_int(&o.extra_buffers);
-    } else if (key == "max_lent_buffers") {
-      as_int(&o.max_lent_buffers);
-    } else if (key == "zero_copy") {
-      as_bool(&o.zero_copy);
-    } else if (key == "frame_timeout_ms") {
-      as_int(&o.frame_timeout_ms);
-    } else if (key == "probe_timeout_ms") {
-      as_int(&o.probe_timeout_ms);
-    } else if (key == "probe_retries") {
-      as_int(&o.probe_retries);
-    } else if (key == "idle_probe_interval_ms") {
-      as_int(&o.idle_probe_interval_ms);
-    } else if (key == "auto_reconnect") {
-      as_bool(&o.auto_reconnect);
-    } else if (key == "reconnect_min_backoff_ms") {
-      as_int(&o.reconnect_min_backoff_ms);
-    } else if (key == "reconnect_max_backoff_ms") {
-      as_int(&o.reconnect_max_backoff_ms);
-    } else {
-      throw Error(ErrorCode::kInvalidArgument,
-                  where + ": unknown option '" + key +
-                      "' (known: packet_size, packet_resend, socket_buffer_size, "
-                      "packet_timeout_us, frame_retention_us, packet_socket, startup_discard_ms, "
-                      "extra_buffers, "
-                      "max_lent_buffers, "
-                      "zero_copy, frame_timeout_ms, idle_probe_interval_ms, probe_timeout_ms, "
-                      "probe_retries, auto_reconnect, reconnect_min_backoff_ms, "
-                      "reconnect_max_backoff_ms)");
+    const UriOption* opt = nullptr;
+    for (const UriOption& u : kUriOptions)
+      if (key == u.key) opt = &u;
+    if (opt == nullptr) {
+      std::string known;
+      for (const UriOption& u : kUriOptions) known += (known.empty() ? "" : ", ") + std::string(u.key);
+      throw Error(ErrorCode::kInvalidArgument, where + ": unknown option '" + key + "' (known: " + known + ")");
+    }
+    if (!set_uri_option(*opt, value, &o)) {
+      throw Error(ErrorCode::kInvalidArgument, where + ": option " + key + "=" + value + " is not " +
+                                                   (opt->int_field ? "an integer" : "0/1/true/false"));
     }
   }
   std::string why;
@@ -149,7 +136,7 @@ std::vector<ListedDevice> discover() {
 
 DeviceInfo info_of(const ListedDevice& d) {
   DeviceInfo info;
-  info.uri = "aravis://" + uri_escape(d.id);
+  info.uri = "aravis://" + percent_encode(d.id);
   info.backend = "aravis";
   info.id = d.id;
   info.vendor = d.vendor;
@@ -178,72 +165,76 @@ class AravisBackend final : public CameraBackend {
   const AravisBackendOptions options_;
 };
 
-std::unique_ptr<Camera> AravisBackend::open(const Uri& uri) {
-  if (uri.scheme != "aravis") {
-    throw Error(ErrorCode::kInvalidArgument, "camera URI '" + uri.text +
-                                                 "': the Aravis backend serves aravis://, not " +
-                                                 uri.scheme + "://");
-  }
-  const std::string& path = uri.path;
-  if (path.empty()) {
-    throw Error(ErrorCode::kInvalidArgument,
-                "camera URI '" + uri.text +
-                    "' names no camera (expected aravis://<device id | serial number | IPv4>)");
-  }
-  const AravisBackendOptions options = options_for(options_, uri);
-
+// Where to open a camera: what arv_camera_new() gets, and what is known of the camera so far.
+struct Found {
   DeviceInfo info;
   Locator locator;
-  std::string target;  // what arv_camera_new() gets
-  if (is_ipv4_address(path)) {
-    // Straight to the address (no discovery, so routed subnets work too); the probe keeps a
-    // missing camera from costing Aravis' 2.5 s connection timeout.
-    if (!gvcp_probe(path, options.probe_timeout_ms, options.probe_retries)) {
-      throw Error(ErrorCode::kNotFound,
-                  "camera '" + uri.text + "' not found: no GigE Vision camera answers at " + path);
-    }
-    info.uri = "aravis://" + path;
-    locator.gige = true;
-    locator.address = path;
-    target = path;
-  } else {
-    std::lock_guard<std::mutex> lock(device_list_mutex());
-    const std::vector<ListedDevice> devices = discover();
-    const ListedDevice* found = nullptr;
-    for (const ListedDevice& d : devices) {
-      if (d.id == path) found = &d;
-    }
-    if (found == nullptr) {
-      std::vector<const ListedDevice*> matches;
-      for (const ListedDevice& d : devices) {
-        if (d.serial == path || (!d.physical_id.empty() && d.physical_id == path))
-          matches.push_back(&d);
-      }
-      if (matches.size() > 1) {
-        std::string ids;
-        for (const ListedDevice* d : matches) ids += (ids.empty() ? "" : ", ") + d->id;
-        throw Error(ErrorCode::kInvalidArgument, "camera URI '" + uri.text + "': '" + path +
-                                                     "' matches several cameras (" + ids +
-                                                     "); use the device id");
-      }
-      if (!matches.empty()) found = matches.front();
-    }
-    if (found == nullptr) {
-      std::string present;
-      for (const ListedDevice& d : devices) present += (present.empty() ? "" : ", ") + d.id;
-      throw Error(ErrorCode::kNotFound,
-                  "camera '" + uri.text + "' not found (Aravis sees " +
-                      (present.empty() ? std::string("no cameras") : present) + ")");
-    }
-    info = info_of(*found);
-    locator.device_id = found->id;
-    locator.serial = found->serial;
-    locator.gige = found->protocol == "GigEVision";
-    locator.address = locator.gige ? found->address : "";
-    // By address a GigE camera opens without a second discovery round.
-    target = locator.gige && !locator.address.empty() ? locator.address : found->id;
-  }
+  std::string target;
+};
 
+// By IPv4 address: straight to it (no discovery, so routed subnets work too); the probe keeps a
+// missing camera from costing Aravis' 2.5 s connection timeout.
+Found find_by_address(const Uri& uri, const std::string& path, const AravisBackendOptions& options) {
+  Found f;
+  DeviceInfo& info = f.info;
+  Locator& locator = f.locator;
+  std::string& target = f.target;
+  if (!gvcp_probe(path, options.probe_timeout_ms, options.probe_retries)) {
+    throw Error(ErrorCode::kNotFound,
+                "camera '" + uri.text + "' not found: no GigE Vision camera answers at " + path);
+  }
+  info.uri = "aravis://" + path;
+  locator.gige = true;
+  locator.address = path;
+  target = path;
+  return f;
+}
+
+// By device id, serial number or physical id, through Aravis' discovery.
+Found find_by_discovery(const Uri& uri, const std::string& path) {
+  Found f;
+  DeviceInfo& info = f.info;
+  Locator& locator = f.locator;
+  std::string& target = f.target;
+  std::lock_guard<std::mutex> lock(device_list_mutex());
+  const std::vector<ListedDevice> devices = discover();
+  const ListedDevice* found = nullptr;
+  for (const ListedDevice& d : devices) {
+    if (d.id == path) found = &d;
+  }
+  if (found == nullptr) {
+    std::vector<const ListedDevice*> matches;
+    for (const ListedDevice& d : devices) {
+      if (d.serial == path || (!d.physical_id.empty() && d.physical_id == path))
+        matches.push_back(&d);
+    }
+    if (matches.size() > 1) {
+      std::string ids;
+      for (const ListedDevice* d : matches) ids += (ids.empty() ? "" : ", ") + d->id;
+      throw Error(ErrorCode::kInvalidArgument, "camera URI '" + uri.text + "': '" + path +
+                                                   "' matches several cameras (" + ids +
+                                                   "); use the device id");
+    }
+    if (!matches.empty()) found = matches.front();
+  }
+  if (found == nullptr) {
+    std::string present;
+    for (const ListedDevice& d : devices) present += (present.empty() ? "" : ", ") + d.id;
+    throw Error(ErrorCode::kNotFound,
+                "camera '" + uri.text + "' not found (Aravis sees " +
+                    (present.empty() ? std::string("no cameras") : present) + ")");
+  }
+  info = info_of(*found);
+  locator.device_id = found->id;
+  locator.serial = found->serial;
+  locator.gige = found->protocol == "GigEVision";
+  locator.address = locator.gige ? found->address : "";
+  // By address a GigE camera opens without a second discovery round.
+  target = locator.gige && !locator.address.empty() ? locator.address : found->id;
+  return f;
+}
+
+GPtr<ArvCamera> connect(const Uri& uri, const std::string& target) {
   GPtr<ArvCamera> camera;
   {
     std::lock_guard<std::mutex> lock(device_list_mutex());
@@ -254,7 +245,14 @@ std::unique_ptr<Camera> AravisBackend::open(const Uri& uri) {
                   "camera '" + uri.text + "' could not be opened: " + err.message());
     }
   }
-  ArvCamera* cam = camera.get();
+  return camera;
+}
+
+// The identity the camera reports itself, checked against what discovery said.
+void complete_identity(ArvCamera* cam, const Uri& uri, const std::string& target, DeviceInfo* info_out,
+                       Locator* locator_out) {
+  DeviceInfo& info = *info_out;
+  Locator& locator = *locator_out;
   auto read = [&](const char* (*getter)(ArvCamera*, GError**)) {
     GErr err;
     const char* s = getter(cam, err.out());
@@ -275,7 +273,25 @@ std::unique_ptr<Camera> AravisBackend::open(const Uri& uri) {
   info.transport = arv_camera_is_gv_device(cam)   ? "GigE Vision"
                    : arv_camera_is_uv_device(cam) ? "USB3 Vision"
                                                   : info.transport;
-  return std::make_unique<AravisCameraImpl>(std::move(camera), std::move(info), std::move(locator),
+}
+
+std::unique_ptr<Camera> AravisBackend::open(const Uri& uri) {
+  if (uri.scheme != "aravis") {
+    throw Error(ErrorCode::kInvalidArgument, "camera URI '" + uri.text +
+                                                 "': the Aravis backend serves aravis://, not " +
+                                                 uri.scheme + "://");
+  }
+  const std::string& path = uri.path;
+  if (path.empty()) {
+    throw Error(ErrorCode::kInvalidArgument,
+                "camera URI '" + uri.text +
+                    "' names no camera (expected aravis://<device id | serial number | IPv4>)");
+  }
+  const AravisBackendOptions options = options_for(options_, uri);
+  Found f = is_ipv4_address(path) ? find_by_address(uri, path, options) : find_by_discovery(uri, path);
+  GPtr<ArvCamera> camera = connect(uri, f.target);
+  complete_identity(camera.get(), uri, f.target, &f.info, &f.locator);
+  return std::make_unique<AravisCameraImpl>(std::move(camera), std::move(f.info), std::move(f.locator),
                                             options);
 }
 

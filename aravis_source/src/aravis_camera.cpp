@@ -230,23 +230,20 @@ CameraConfig AravisCameraImpl::read_config_locked() {
   return c;
 }
 
-CameraConfig AravisCameraImpl::validate_locked(const CameraConfig& requested) {
+void AravisCameraImpl::check_read(const GErr& err, const std::string& what) const {
+  if (err) throw Error(ErrorCode::kDevice, label_ + ": reading " + what + " failed: " + err.message());
+}
+
+// Pixel format: one the camera offers and the engine converter reads (Adjusted where none was
+// requested and the current one cannot be read).
+std::optional<PixelFormat> AravisCameraImpl::validate_pixel_format_locked(const std::optional<PixelFormat>& requested) {
   ArvCamera* cam = camera_.get();
-  auto check = [&](const GErr& err, const std::string& what) {
-    if (err)
-      throw Error(ErrorCode::kDevice, label_ + ": reading " + what + " failed: " + err.message());
-  };
-  CameraConfig out = requested;
   GErr err;
-
-  // Camera::validate() has checked the queue depth (at most Camera::kMaxQueueDepth).
-  out.queue_depth = requested.queue_depth;
-
-  // Pixel format: one the camera offers and the engine converter reads.
+  std::optional<PixelFormat> out = requested;
   guint n_formats = 0;
   const char** formats =
       arv_camera_dup_available_pixel_formats_as_strings(cam, &n_formats, err.out());
-  check(err, "the available pixel formats");
+  check_read(err, "the available pixel formats");
   std::vector<std::string> offered;
   for (guint i = 0; formats != nullptr && i < n_formats; ++i) {
     if (formats[i] != nullptr) offered.emplace_back(formats[i]);
@@ -258,8 +255,8 @@ CameraConfig AravisCameraImpl::validate_locked(const CameraConfig& requested) {
     }
     return "";
   };
-  if (requested.pixel_format) {
-    const PixelFormat f = *requested.pixel_format;
+  if (requested) {
+    const PixelFormat f = *requested;
     if (!engine_can_convert(f)) {
       throw Error(ErrorCode::kUnsupported, label_ + ": pixel format " + pixel_format_name(f) +
                                                " is not supported by GenICam cameras");
@@ -271,105 +268,117 @@ CameraConfig AravisCameraImpl::validate_locked(const CameraConfig& requested) {
     }
   } else {
     const char* current = arv_camera_get_pixel_format_as_string(cam, err.out());
-    check(err, "PixelFormat");
+    check_read(err, "PixelFormat");
     if (!engine_can_convert(pixel_format_from_genicam(current != nullptr ? current : ""))) {
       // Adjusted: the first format the engine can read, cheapest conversion first.
       for (PixelFormat f : {PixelFormat::kMono8, PixelFormat::kBayerRG8, PixelFormat::kBayerGR8,
                             PixelFormat::kBayerGB8, PixelFormat::kBayerBG8, PixelFormat::kBGR8,
                             PixelFormat::kRGB8, PixelFormat::kYUYV, PixelFormat::kMono16}) {
         if (!offered_name(f).empty()) {
-          out.pixel_format = f;
+          out = f;
           break;
         }
       }
-      if (!out.pixel_format) {
+      if (!out) {
         throw Error(ErrorCode::kUnsupported, label_ + ": none of the camera's pixel formats (" +
                                                  join(offered) + ") can be converted");
       }
     }
   }
 
-  // Region of interest: inside the sensor, on the camera's increments.
-  if (requested.roi) {
-    const cv::Rect r = *requested.roi;
-    if (r.width <= 0 || r.height <= 0 || r.x < 0 || r.y < 0) {
-      throw Error(ErrorCode::kInvalidArgument,
-                  label_ + ": ROI " + rect_text(r) +
-                      " is invalid (width and height must be positive, offsets not negative)");
-    }
-    gint wmin = 1, wmax = 0, hmin = 1, hmax = 0, cur_x = 0, cur_y = 0, cur_w = 0, cur_h = 0;
-    arv_camera_get_width_bounds(cam, &wmin, &wmax, err.out());
-    check(err, "the width range");
-    arv_camera_get_height_bounds(cam, &hmin, &hmax, err.out());
-    check(err, "the height range");
-    arv_camera_get_region(cam, &cur_x, &cur_y, &cur_w, &cur_h, err.out());
-    check(err, "the region of interest");
-    // SFNC: WidthMax = (sensor width / binning) - OffsetX, so the limit for offset + width is
-    // the current maximum plus the current offset, capped by the sensor where it is known.
-    int limit_w = wmax + cur_x, limit_h = hmax + cur_y;
-    gint sensor_w = 0, sensor_h = 0;
-    arv_camera_get_sensor_size(cam, &sensor_w, &sensor_h, err.out());
-    if (!err && sensor_w > 0 && sensor_h > 0) {
-      gint bx = 1, by = 1;
-      if (available(arv_camera_is_binning_available, cam)) {
-        GErr berr;
-        arv_camera_get_binning(cam, &bx, &by, berr.out());
-        if (berr || bx < 1 || by < 1) bx = by = 1;
-      }
-      limit_w = std::min(limit_w, sensor_w / bx);
-      limit_h = std::min(limit_h, sensor_h / by);
-    }
-    err.reset();
-    const int winc = std::max(1, arv_camera_get_width_increment(cam, nullptr));
-    const int hinc = std::max(1, arv_camera_get_height_increment(cam, nullptr));
-    const bool offsets = available(arv_camera_is_region_offset_available, cam);
-    const int xinc = offsets ? std::max(1, arv_camera_get_x_offset_increment(cam, nullptr)) : 1;
-    const int yinc = offsets ? std::max(1, arv_camera_get_y_offset_increment(cam, nullptr)) : 1;
-    auto fit = [](int v, int lo, int hi, int inc) {
-      v = std::clamp(v, lo, std::max(lo, hi));
-      return lo + ((v - lo) / inc) * inc;
-    };
-    const int w = fit(r.width, wmin, limit_w, winc);
-    const int h = fit(r.height, hmin, limit_h, hinc);
-    int x = offsets ? (r.x / xinc) * xinc : 0;
-    int y = offsets ? (r.y / yinc) * yinc : 0;
-    if (x + w > limit_w) x = std::max(0, ((limit_w - w) / xinc) * xinc);
-    if (y + h > limit_h) y = std::max(0, ((limit_h - h) / yinc) * yinc);
-    out.roi = cv::Rect(x, y, w, h);
-  }
+  return out;
+}
 
-  auto clamp_value = [&](const std::optional<double>& value, const char* what, const char* unit,
-                         bool (*is_available)(ArvCamera*),
-                         void (*bounds)(ArvCamera*, double*, double*, GError**),
-                         std::optional<double>* result) {
-    if (!value) return;
-    if (!std::isfinite(*value) || (std::string(what) != "gain_db" && *value <= 0)) {
-      throw Error(ErrorCode::kInvalidArgument,
-                  label_ + ": " + what + " " + number(*value) + " is invalid (" + unit + ")");
+// Region of interest: inside the sensor, on the camera's increments.
+cv::Rect AravisCameraImpl::validate_roi_locked(const cv::Rect& requested) {
+  ArvCamera* cam = camera_.get();
+  GErr err;
+  const cv::Rect r = requested;
+  if (r.width <= 0 || r.height <= 0 || r.x < 0 || r.y < 0) {
+    throw Error(ErrorCode::kInvalidArgument,
+                label_ + ": ROI " + rect_text(r) +
+                    " is invalid (width and height must be positive, offsets not negative)");
+  }
+  gint wmin = 1, wmax = 0, hmin = 1, hmax = 0, cur_x = 0, cur_y = 0, cur_w = 0, cur_h = 0;
+  arv_camera_get_width_bounds(cam, &wmin, &wmax, err.out());
+  check_read(err, "the width range");
+  arv_camera_get_height_bounds(cam, &hmin, &hmax, err.out());
+  check_read(err, "the height range");
+  arv_camera_get_region(cam, &cur_x, &cur_y, &cur_w, &cur_h, err.out());
+  check_read(err, "the region of interest");
+  // SFNC: WidthMax = (sensor width / binning) - OffsetX, so the limit for offset + width is
+  // the current maximum plus the current offset, capped by the sensor where it is known.
+  int limit_w = wmax + cur_x, limit_h = hmax + cur_y;
+  gint sensor_w = 0, sensor_h = 0;
+  arv_camera_get_sensor_size(cam, &sensor_w, &sensor_h, err.out());
+  if (!err && sensor_w > 0 && sensor_h > 0) {
+    gint bx = 1, by = 1;
+    if (available(arv_camera_is_binning_available, cam)) {
+      GErr berr;
+      arv_camera_get_binning(cam, &bx, &by, berr.out());
+      if (berr || bx < 1 || by < 1) bx = by = 1;
     }
-    if (!is_available(cam)) {
-      throw Error(ErrorCode::kUnsupported, label_ + ": the camera has no adjustable " + what);
-    }
-    double lo = 0, hi = 0;
-    GErr berr;
-    bounds(cam, &lo, &hi, berr.out());
-    if (berr)
-      throw Error(ErrorCode::kDevice,
-                  label_ + ": reading the " + what + " range failed: " + berr.message());
-    *result = std::clamp(*value, lo, std::max(lo, hi));
+    limit_w = std::min(limit_w, sensor_w / bx);
+    limit_h = std::min(limit_h, sensor_h / by);
+  }
+  err.reset();
+  const int winc = std::max(1, arv_camera_get_width_increment(cam, nullptr));
+  const int hinc = std::max(1, arv_camera_get_height_increment(cam, nullptr));
+  const bool offsets = available(arv_camera_is_region_offset_available, cam);
+  const int xinc = offsets ? std::max(1, arv_camera_get_x_offset_increment(cam, nullptr)) : 1;
+  const int yinc = offsets ? std::max(1, arv_camera_get_y_offset_increment(cam, nullptr)) : 1;
+  auto fit = [](int v, int lo, int hi, int inc) {
+    v = std::clamp(v, lo, std::max(lo, hi));
+    return lo + ((v - lo) / inc) * inc;
   };
-  clamp_value(
+  const int w = fit(r.width, wmin, limit_w, winc);
+  const int h = fit(r.height, hmin, limit_h, hinc);
+  int x = offsets ? (r.x / xinc) * xinc : 0;
+  int y = offsets ? (r.y / yinc) * yinc : 0;
+  if (x + w > limit_w) x = std::max(0, ((limit_w - w) / xinc) * xinc);
+  if (y + h > limit_h) y = std::max(0, ((limit_h - h) / yinc) * yinc);
+  return cv::Rect(x, y, w, h);
+}
+
+// An exposure, gain or frame rate clamped to the camera's range.
+std::optional<double> AravisCameraImpl::clamp_setting_locked(const std::optional<double>& value, const char* what,
+                                                             const char* unit, bool (*is_available)(ArvCamera*),
+                                                             void (*bounds)(ArvCamera*, double*, double*, GError**)) {
+  ArvCamera* cam = camera_.get();
+  if (!value) return std::nullopt;
+  if (!std::isfinite(*value) || (std::string(what) != "gain_db" && *value <= 0)) {
+    throw Error(ErrorCode::kInvalidArgument,
+                label_ + ": " + what + " " + number(*value) + " is invalid (" + unit + ")");
+  }
+  if (!is_available(cam)) {
+    throw Error(ErrorCode::kUnsupported, label_ + ": the camera has no adjustable " + what);
+  }
+  double lo = 0, hi = 0;
+  GErr berr;
+  bounds(cam, &lo, &hi, berr.out());
+  if (berr)
+    throw Error(ErrorCode::kDevice,
+                label_ + ": reading the " + what + " range failed: " + berr.message());
+  return std::clamp(*value, lo, std::max(lo, hi));
+}
+
+CameraConfig AravisCameraImpl::validate_locked(const CameraConfig& requested) {
+  CameraConfig out = requested;
+  // Camera::validate() has checked the queue depth (at most Camera::kMaxQueueDepth).
+  out.pixel_format = validate_pixel_format_locked(requested.pixel_format);
+  if (requested.roi) out.roi = validate_roi_locked(*requested.roi);
+  out.exposure_us = clamp_setting_locked(
       requested.exposure_us, "exposure_us", "a positive number of microseconds",
       [](ArvCamera* c) { return available(arv_camera_is_exposure_time_available, c); },
-      arv_camera_get_exposure_time_bounds, &out.exposure_us);
-  clamp_value(
+      arv_camera_get_exposure_time_bounds);
+  out.gain_db = clamp_setting_locked(
       requested.gain_db, "gain_db", "a finite number",
       [](ArvCamera* c) { return available(arv_camera_is_gain_available, c); },
-      arv_camera_get_gain_bounds, &out.gain_db);
-  clamp_value(
+      arv_camera_get_gain_bounds);
+  out.frame_rate_hz = clamp_setting_locked(
       requested.frame_rate_hz, "frame_rate_hz", "a positive number of frames per second",
       [](ArvCamera* c) { return available(arv_camera_is_frame_rate_available, c); },
-      arv_camera_get_frame_rate_bounds, &out.frame_rate_hz);
+      arv_camera_get_frame_rate_bounds);
   return out;
 }
 
@@ -910,15 +919,17 @@ void AravisCameraImpl::reap(GPtr<ArvStream> stream, GPtr<ArvCamera> camera) {
   reapers_.push_back(Reaper{std::move(t), done});
 }
 
-bool AravisCameraImpl::try_reconnect(int attempt) {
+// Where the vanished camera answers again: its address if the cheap probe succeeds, else (every
+// fourth attempt: the probe failed three times) what discovery (one second) finds with its serial
+// number or device id, at another address (DHCP) or on USB, where discovery is the only way. ""
+// if nowhere.
+std::string AravisCameraImpl::find_again(int attempt) const {
   const Locator loc = locator();
   std::string target;
   if (loc.gige && !loc.address.empty() &&
       gvcp_probe(loc.address, options_.probe_timeout_ms, options_.probe_retries)) {
     target = loc.address;
   } else if (!loc.gige || attempt % 4 == 0) {
-    // Every fourth attempt (the cheap probe failed three times), discovery (one second) looks
-    // for a camera that came back at another address (DHCP); USB cameras are only found so.
     std::lock_guard<std::mutex> lock(device_list_mutex());
     arv_update_device_list();
     const unsigned n = arv_get_n_devices();
@@ -934,20 +945,50 @@ bool AravisCameraImpl::try_reconnect(int attempt) {
       target = gige && address != nullptr ? address : (id != nullptr ? id : "");
     }
   }
-  if (target.empty()) return false;
+  return target;
+}
 
+// Opens `target` and checks that it is the same camera (serial number); nullptr if not.
+GPtr<ArvCamera> AravisCameraImpl::reopen(const std::string& target) const {
+  const Locator loc = locator();
   GPtr<ArvCamera> camera;
   {
     std::lock_guard<std::mutex> lock(device_list_mutex());
     GErr err;
     camera.reset(arv_camera_new(target.c_str(), err.out()));
   }
-  if (!camera) return false;
+  if (!camera) return nullptr;
   {
     GErr err;
     const char* serial = arv_camera_get_device_serial_number(camera.get(), err.out());
-    if (err || serial == nullptr || (!loc.serial.empty() && loc.serial != serial)) return false;
+    if (err || serial == nullptr || (!loc.serial.empty() && loc.serial != serial)) return nullptr;
   }
+
+  return camera;
+}
+
+// Replays what the session asked for, in order; the settings that failed.
+std::vector<std::string> AravisCameraImpl::restore_settings_locked() {
+  std::vector<std::string> problems;
+  for (const Setting& s : settings_) {
+    try {
+      if (s.config) {
+        apply_config_locked(validate_locked(*s.config));
+      } else {
+        write_feature(device_, label_, s.name, s.value);
+      }
+    } catch (const std::exception& e) {
+      problems.push_back(e.what());
+    }
+  }
+  return problems;
+}
+
+bool AravisCameraImpl::try_reconnect(int attempt) {
+  const std::string target = find_again(attempt);
+  if (target.empty()) return false;
+  GPtr<ArvCamera> camera = reopen(target);
+  if (!camera) return false;
 
   std::vector<std::string> problems;
   bool streaming = false;
@@ -958,17 +999,7 @@ bool AravisCameraImpl::try_reconnect(int attempt) {
     } catch (const std::exception&) {
       return false;
     }
-    for (const Setting& s : settings_) {
-      try {
-        if (s.config) {
-          apply_config_locked(validate_locked(*s.config));
-        } else {
-          write_feature(device_, label_, s.name, s.value);
-        }
-      } catch (const std::exception& e) {
-        problems.push_back(e.what());
-      }
-    }
+    problems = restore_settings_locked();
     CameraState target_state = configured_ ? CameraState::kConfigured : CameraState::kOpened;
     bool failed = false;
     if (want_streaming_) {

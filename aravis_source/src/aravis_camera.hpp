@@ -98,6 +98,12 @@ class AravisCameraImpl final : public AravisCamera {
   GPtr<ArvCamera> detach_locked();
   CameraConfig read_config_locked();
   CameraConfig validate_locked(const CameraConfig& requested);
+  std::optional<PixelFormat> validate_pixel_format_locked(const std::optional<PixelFormat>& requested);
+  cv::Rect validate_roi_locked(const cv::Rect& requested);
+  std::optional<double> clamp_setting_locked(const std::optional<double>& value, const char* what, const char* unit,
+                                             bool (*is_available)(ArvCamera*),
+                                             void (*bounds)(ArvCamera*, double*, double*, GError**));
+  void check_read(const GErr& err, const std::string& what) const;
   void apply_config_locked(const CameraConfig& config);
   void write_feature_locked(const std::string& name, const std::string& value);
   void record_locked(Setting setting);
@@ -110,6 +116,9 @@ class AravisCameraImpl final : public AravisCamera {
   bool probe();
   void declare_disconnected(const std::string& why);
   bool try_reconnect(int attempt);
+  std::string find_again(int attempt) const;
+  GPtr<ArvCamera> reopen(const std::string& target) const;
+  std::vector<std::string> restore_settings_locked();
   void reap(GPtr<ArvStream> stream, GPtr<ArvCamera> camera);
   void emit(CameraEvent::Kind kind, const std::string& message);
   FrameStatus deliver(Queued item, Frame* frame);

@@ -117,21 +117,6 @@ bool is_ipv4_address(const std::string& text) {
   return inet_pton(AF_INET, text.c_str(), &addr) == 1;
 }
 
-std::string uri_escape(const std::string& text) {
-  static const std::string kKeep = "-._~:@+,=/";
-  std::string out;
-  for (unsigned char c : text) {
-    if (std::isalnum(c) || kKeep.find(static_cast<char>(c)) != std::string::npos) {
-      out.push_back(static_cast<char>(c));
-    } else {
-      char buf[4];
-      std::snprintf(buf, sizeof buf, "%%%02X", c);
-      out += buf;
-    }
-  }
-  return out;
-}
-
 namespace {
 
 constexpr uint16_t kGvcpPort = 3956;

@@ -69,7 +69,7 @@ std::string transport_name(const std::string& aravis_protocol);
 // True for a dotted-quad IPv4 address.
 bool is_ipv4_address(const std::string& text);
 // Percent-encodes what Uri::parse would otherwise misread (space, '?', '%', '#', ...).
-std::string uri_escape(const std::string& text);
+
 
 // Liveness probe of a GigE Vision camera: a GVCP READREG of the bootstrap Version register
 // (0x0000) sent from a fresh UDP socket `retries` times, each waiting `timeout_ms` for the ACK.

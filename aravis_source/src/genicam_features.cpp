@@ -216,6 +216,100 @@ std::string read_feature(ArvDevice* device, const std::string& camera, const std
   return value != nullptr ? value : "";
 }
 
+namespace {
+
+// A command is executed by "" or "execute".
+void write_command(ArvGcFeatureNode* f, const std::string& value, const std::string& bad, GErr* errp) {
+  GErr& err = *errp;
+  const std::string v = lower(value);
+  if (!(v.empty() || v == "execute" || v == "1" || v == "true")) {
+    throw Error(ErrorCode::kInvalidArgument, bad + " (a command takes \"\" or \"execute\")");
+  }
+  arv_gc_command_execute(ARV_GC_COMMAND(f), err.out());
+}
+
+// true/false, 1/0 or on/off.
+void write_boolean(ArvGcFeatureNode* f, const std::string& value, const std::string& bad, GErr* errp) {
+  GErr& err = *errp;
+  const std::string v = lower(value);
+  bool b;
+  if (v == "1" || v == "true" || v == "on") {
+    b = true;
+  } else if (v == "0" || v == "false" || v == "off") {
+    b = false;
+  } else {
+    throw Error(ErrorCode::kInvalidArgument, bad + " (expected true or false)");
+  }
+  arv_gc_boolean_set_value(ARV_GC_BOOLEAN(f), b ? TRUE : FALSE, err.out());
+}
+
+// One of the entries available now.
+void write_enumeration(ArvGcFeatureNode* f, const std::string& value, const std::string& bad, GErr* errp) {
+  GErr& err = *errp;
+  const std::vector<std::string> options = enumeration_options(f);
+  if (std::find(options.begin(), options.end(), value) == options.end()) {
+    std::string list;
+    for (const auto& o : options) list += (list.empty() ? "" : ", ") + o;
+    throw Error(ErrorCode::kInvalidArgument, bad + " (available: " + list + ")");
+  }
+  arv_gc_enumeration_set_string_value(ARV_GC_ENUMERATION(f), value.c_str(), err.out());
+}
+
+// At most the node's maximum length.
+void write_string(ArvGcFeatureNode* f, const std::string& value, const std::string& bad, GErr* errp) {
+  GErr& err = *errp;
+  GErr len_err;
+  const gint64 max_length = arv_gc_string_get_max_length(ARV_GC_STRING(f), len_err.out());
+  if (!len_err && max_length > 0 && static_cast<gint64>(value.size()) > max_length) {
+    throw Error(ErrorCode::kInvalidArgument,
+                bad + " (longer than " + std::to_string(max_length) + " characters)");
+  }
+  arv_gc_string_set_value(ARV_GC_STRING(f), value.c_str(), err.out());
+}
+
+// A number in the node's range.
+void write_float(ArvGcFeatureNode* f, const std::string& value, const std::string& bad, GErr* errp) {
+  GErr& err = *errp;
+  double v;
+  if (!parse_double(value, &v))
+    throw Error(ErrorCode::kInvalidArgument, bad + " (expected a number)");
+  ArvGcFloat* fl = ARV_GC_FLOAT(f);
+  GErr e1, e2;
+  const double mn = arv_gc_float_get_min(fl, e1.out());
+  const double mx = arv_gc_float_get_max(fl, e2.out());
+  if (!e1 && !e2 && (v < mn || v > mx)) {
+    throw Error(ErrorCode::kInvalidArgument,
+                bad + " (out of range [" + format_double(mn) + ", " + format_double(mx) + "])");
+  }
+  arv_gc_float_set_value(fl, v, err.out());
+}
+
+// An integer in the node's range, on its increment.
+void write_integer(ArvGcFeatureNode* f, const std::string& value, const std::string& bad, GErr* errp) {
+  GErr& err = *errp;
+  int64_t v;
+  if (!parse_int64(value, &v))
+    throw Error(ErrorCode::kInvalidArgument, bad + " (expected an integer)");
+  ArvGcInteger* in = ARV_GC_INTEGER(f);
+  GErr e1, e2, e3;
+  const gint64 mn = arv_gc_integer_get_min(in, e1.out());
+  const gint64 mx = arv_gc_integer_get_max(in, e2.out());
+  const gint64 inc = arv_gc_integer_get_inc(in, e3.out());
+  if (!e1 && !e2 && (v < mn || v > mx)) {
+    throw Error(ErrorCode::kInvalidArgument,
+                bad + " (out of range [" + std::to_string(mn) + ", " + std::to_string(mx) + "])");
+  }
+  if (!e1 && !e3 && inc > 1 && (v - mn) % inc != 0) {
+    throw Error(ErrorCode::kInvalidArgument, bad + " (must be " + std::to_string(mn) +
+                                                 " plus a multiple of " + std::to_string(inc) +
+                                                 ")");
+  }
+  arv_gc_integer_set_value(in, v, err.out());
+
+}
+
+}  // namespace
+
 void write_feature(ArvDevice* device, const std::string& camera, const std::string& name,
                    const std::string& value) {
   ArvGcFeatureNode* f = find_feature(device, name);
@@ -241,71 +335,13 @@ void write_feature(ArvDevice* device, const std::string& camera, const std::stri
   if (!err && locked) throw Error(ErrorCode::kInvalidArgument, prefix + " is locked");
   const std::string bad = prefix + ": invalid value '" + value + "'";
   err.reset();
-  if (type == FeatureType::kCommand) {
-    const std::string v = lower(value);
-    if (!(v.empty() || v == "execute" || v == "1" || v == "true")) {
-      throw Error(ErrorCode::kInvalidArgument, bad + " (a command takes \"\" or \"execute\")");
-    }
-    arv_gc_command_execute(ARV_GC_COMMAND(f), err.out());
-  } else if (type == FeatureType::kBoolean) {
-    const std::string v = lower(value);
-    bool b;
-    if (v == "1" || v == "true" || v == "on") {
-      b = true;
-    } else if (v == "0" || v == "false" || v == "off") {
-      b = false;
-    } else {
-      throw Error(ErrorCode::kInvalidArgument, bad + " (expected true or false)");
-    }
-    arv_gc_boolean_set_value(ARV_GC_BOOLEAN(f), b ? TRUE : FALSE, err.out());
-  } else if (type == FeatureType::kEnumeration) {
-    const std::vector<std::string> options = enumeration_options(f);
-    if (std::find(options.begin(), options.end(), value) == options.end()) {
-      std::string list;
-      for (const auto& o : options) list += (list.empty() ? "" : ", ") + o;
-      throw Error(ErrorCode::kInvalidArgument, bad + " (available: " + list + ")");
-    }
-    arv_gc_enumeration_set_string_value(ARV_GC_ENUMERATION(f), value.c_str(), err.out());
-  } else if (type == FeatureType::kString) {
-    GErr len_err;
-    const gint64 max_length = arv_gc_string_get_max_length(ARV_GC_STRING(f), len_err.out());
-    if (!len_err && max_length > 0 && static_cast<gint64>(value.size()) > max_length) {
-      throw Error(ErrorCode::kInvalidArgument,
-                  bad + " (longer than " + std::to_string(max_length) + " characters)");
-    }
-    arv_gc_string_set_value(ARV_GC_STRING(f), value.c_str(), err.out());
-  } else if (type == FeatureType::kFloat) {
-    double v;
-    if (!parse_double(value, &v))
-      throw Error(ErrorCode::kInvalidArgument, bad + " (expected a number)");
-    ArvGcFloat* fl = ARV_GC_FLOAT(f);
-    GErr e1, e2;
-    const double mn = arv_gc_float_get_min(fl, e1.out());
-    const double mx = arv_gc_float_get_max(fl, e2.out());
-    if (!e1 && !e2 && (v < mn || v > mx)) {
-      throw Error(ErrorCode::kInvalidArgument,
-                  bad + " (out of range [" + format_double(mn) + ", " + format_double(mx) + "])");
-    }
-    arv_gc_float_set_value(fl, v, err.out());
-  } else {  // integer
-    int64_t v;
-    if (!parse_int64(value, &v))
-      throw Error(ErrorCode::kInvalidArgument, bad + " (expected an integer)");
-    ArvGcInteger* in = ARV_GC_INTEGER(f);
-    GErr e1, e2, e3;
-    const gint64 mn = arv_gc_integer_get_min(in, e1.out());
-    const gint64 mx = arv_gc_integer_get_max(in, e2.out());
-    const gint64 inc = arv_gc_integer_get_inc(in, e3.out());
-    if (!e1 && !e2 && (v < mn || v > mx)) {
-      throw Error(ErrorCode::kInvalidArgument,
-                  bad + " (out of range [" + std::to_string(mn) + ", " + std::to_string(mx) + "])");
-    }
-    if (!e1 && !e3 && inc > 1 && (v - mn) % inc != 0) {
-      throw Error(ErrorCode::kInvalidArgument, bad + " (must be " + std::to_string(mn) +
-                                                   " plus a multiple of " + std::to_string(inc) +
-                                                   ")");
-    }
-    arv_gc_integer_set_value(in, v, err.out());
+  switch (type) {
+    case FeatureType::kCommand: write_command(f, value, bad, &err); break;
+    case FeatureType::kBoolean: write_boolean(f, value, bad, &err); break;
+    case FeatureType::kEnumeration: write_enumeration(f, value, bad, &err); break;
+    case FeatureType::kString: write_string(f, value, bad, &err); break;
+    case FeatureType::kFloat: write_float(f, value, bad, &err); break;
+    case FeatureType::kInteger: write_integer(f, value, bad, &err); break;
   }
   if (err) throw_gerror(err, "setting " + prefix + " to '" + value + "' failed");
 }

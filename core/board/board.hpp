@@ -93,6 +93,8 @@ class Board {
 
  private:
   struct Impl;
+  // printable.cpp: the PDF page's content stream.
+  std::string pdf_content(double margin_m, double page_h) const;
   BoardSpec spec_;
   std::vector<cv::Point3d> corners_;
   std::shared_ptr<const Impl> impl_;

@@ -56,6 +56,11 @@ struct SyntheticCamera::Impl {
   // Scratch buffers reused between frames.
   cv::Mat map, sampled, pixels;
 
+  int mip_level(const Eigen::Matrix3d& H) const;
+  cv::Rect sheet_roi(const Pose& T_cam_board) const;
+  void sample_board(const cv::Rect& roi, const Eigen::Matrix3f& M, int level);
+  cv::Mat composite(uint64_t frame_index) const;
+
   void build_background() {
     cv::RNG rng(mix(options.seed ^ 0x5eedba5eull));
     const int w = model.width(), h = model.height();
@@ -124,31 +129,14 @@ std::vector<cv::Point2d> SyntheticCamera::true_corners(const Pose& T_cam_board) 
   return project_points(impl_->model, T_cam_board, impl_->board.corners());
 }
 
-cv::Mat SyntheticCamera::render(const Pose& T_cam_board) {
-  Impl& s = *impl_;
-  if (!T_cam_board.is_finite())
-    throw Error(ErrorCode::kInvalidArgument, "render: pose is not finite");
-  const RenderOptions& o = s.options;
-  const int n = o.supersample;
-  const uint64_t frame_index = s.frame++;
-
-  // Homography from the board plane (X, Y, 1) to normalised image coordinates: [r1 r2 t].
-  const Eigen::Matrix3d R = T_cam_board.R();
-  Eigen::Matrix3d H;
-  H.col(0) = R.col(0);
-  H.col(1) = R.col(1);
-  H.col(2) = T_cam_board.t;
-  Eigen::Matrix3d Hinv = H.inverse();
-  if (!Hinv.allFinite()) {
-    // Board plane seen edge-on through the centre of projection: nothing of it is visible.
-    Hinv.setZero();
-  }
-
-  // Mip level: smallest texel footprint of one sample over the board's outline and centre
-  // (sharpest detail needed anywhere on the board), ignoring the lens' local magnification.
-  const double sample_step = 1.0 / (n * 0.5 * (s.model.fx() + s.model.fy()));
+// Mip level: smallest texel footprint of one sample over the board's outline and centre
+// (sharpest detail needed anywhere on the board), ignoring the lens' local magnification. H maps
+// the board plane to normalised image coordinates.
+int SyntheticCamera::Impl::mip_level(const Eigen::Matrix3d& H) const {
+  const int n = options.supersample;
+  const double sample_step = 1.0 / (n * 0.5 * (model.fx() + model.fy()));
   double min_footprint_m = std::numeric_limits<double>::infinity();
-  const cv::Size2d bs = s.board.board_size_m();
+  const cv::Size2d bs = board.board_size_m();
   for (const auto& B :
        {cv::Point2d(0, 0), cv::Point2d(bs.width, 0), cv::Point2d(0, bs.height),
         cv::Point2d(bs.width, bs.height), cv::Point2d(bs.width / 2, bs.height / 2)}) {
@@ -166,22 +154,21 @@ cv::Mat SyntheticCamera::render(const Pose& T_cam_board) {
   }
   int level = 0;
   if (std::isfinite(min_footprint_m)) {
-    const double texels = min_footprint_m / s.metres_per_texel[0];
+    const double texels = min_footprint_m / metres_per_texel[0];
     level = std::clamp(static_cast<int>(std::floor(std::log2(std::max(texels, 1.0)))), 0,
                        kMipLevels - 1);
   }
-  const double m = s.metres_per_texel[level];
-  // Board (X, Y) -> texel (u, v) at this level: u = (X + margin) / m - 0.5.
-  Eigen::Matrix3d A;
-  A << 1 / m, 0, s.margin_m / m - 0.5, 0, 1 / m, s.margin_m / m - 0.5, 0, 0, 1;
-  const Eigen::Matrix3f M = (A * Hinv).cast<float>();
+  return level;
+}
 
-  // Only the pixels the printed sheet (board plus white margin) can cover need sampling: its
-  // outline, projected densely through the true model, bounds them. If any outline point
-  // cannot be projected (behind the camera), sample the whole frame.
-  cv::Rect roi(0, 0, s.model.width(), s.model.height());
+// Only the pixels the printed sheet (board plus white margin) can cover need sampling: its
+// outline, projected densely through the true model, bounds them. If any outline point cannot be
+// projected (behind the camera), the whole frame.
+cv::Rect SyntheticCamera::Impl::sheet_roi(const Pose& T_cam_board) const {
+  const cv::Size2d bs = board.board_size_m();
+  cv::Rect roi(0, 0, model.width(), model.height());
   {
-    const double m0 = s.margin_m;
+    const double m0 = margin_m;
     const std::vector<cv::Point3d> sheet = {{-m0, -m0, 0},
                                             {bs.width + m0, -m0, 0},
                                             {bs.width + m0, bs.height + m0, 0},
@@ -192,7 +179,7 @@ cv::Mat SyntheticCamera::render(const Pose& T_cam_board) {
       for (int k = 0; k < kSteps; ++k)
         edge.push_back(sheet[e] +
                        (sheet[(e + 1) % 4] - sheet[e]) * (static_cast<double>(k) / kSteps));
-    const auto proj = project_points(s.model, T_cam_board, edge);
+    const auto proj = project_points(model, T_cam_board, edge);
     double x0 = 1e18, y0 = 1e18, x1 = -1e18, y1 = -1e18;
     bool ok = true;
     for (const auto& p : proj) {
@@ -207,21 +194,27 @@ cv::Mat SyntheticCamera::render(const Pose& T_cam_board) {
     if (ok) {
       const int ix0 = std::max(0, static_cast<int>(std::floor(x0)) - 2);
       const int iy0 = std::max(0, static_cast<int>(std::floor(y0)) - 2);
-      const int ix1 = std::min(s.model.width(), static_cast<int>(std::ceil(x1)) + 3);
-      const int iy1 = std::min(s.model.height(), static_cast<int>(std::ceil(y1)) + 3);
+      const int ix1 = std::min(model.width(), static_cast<int>(std::ceil(x1)) + 3);
+      const int iy1 = std::min(model.height(), static_cast<int>(std::ceil(y1)) + 3);
       roi = ix1 > ix0 && iy1 > iy0 ? cv::Rect(ix0, iy0, ix1 - ix0, iy1 - iy0) : cv::Rect();
     }
   }
+  return roi;
+}
 
-  s.pixels.create(s.model.size(), CV_8UC2);
-  s.pixels.setTo(cv::Scalar(0, 0));
+// Samples the board texture at `level` through the per-sample rays over `roi` into pixels, as
+// (premultiplied albedo, coverage); M maps normalised coordinates to texels.
+void SyntheticCamera::Impl::sample_board(const cv::Rect& roi, const Eigen::Matrix3f& M, int level) {
+  const int n = options.supersample;
+  pixels.create(model.size(), CV_8UC2);
+  pixels.setTo(cv::Scalar(0, 0));
   if (!roi.empty()) {
     const cv::Rect sroi(roi.x * n, roi.y * n, roi.width * n, roi.height * n);
     const int W = sroi.width, Hh = sroi.height;
-    s.map.create(Hh, W, CV_32FC2);
+    map.create(Hh, W, CV_32FC2);
     for (int i = 0; i < Hh; ++i) {
-      const float* ray = s.rays.ptr<float>(sroi.y + i) + 2 * sroi.x;
-      float* out = s.map.ptr<float>(i);
+      const float* ray = rays.ptr<float>(sroi.y + i) + 2 * sroi.x;
+      float* out = map.ptr<float>(i);
       for (int j = 0; j < W; ++j) {
         const float x = ray[2 * j], y = ray[2 * j + 1];
         const float w = M(2, 0) * x + M(2, 1) * y + M(2, 2);
@@ -232,24 +225,29 @@ cv::Mat SyntheticCamera::render(const Pose& T_cam_board) {
         out[2 * j + 1] = front ? (M(1, 0) * x + M(1, 1) * y + M(1, 2)) * inv : -1e6f;
       }
     }
-    cv::remap(s.levels[level], s.sampled, s.map, cv::noArray(), cv::INTER_LINEAR,
+    cv::remap(levels[level], sampled, map, cv::noArray(), cv::INTER_LINEAR,
               cv::BORDER_CONSTANT, cv::Scalar(0, 0));
-    cv::Mat dst = s.pixels(roi);
+    cv::Mat dst = pixels(roi);
     if (n > 1) {
-      cv::resize(s.sampled, dst, roi.size(), 0, 0, cv::INTER_AREA);
+      cv::resize(sampled, dst, roi.size(), 0, 0, cv::INTER_AREA);
     } else {
-      s.sampled.copyTo(dst);
+      sampled.copyTo(dst);
     }
   }
 
-  // Composite: premultiplied albedo a_p and coverage c (both 0..255) over the background.
-  cv::Mat img(s.model.size(), CV_32F);
+}
+
+// Composite: the sampled board over the background, then blur, exposure and noise; 8-bit.
+cv::Mat SyntheticCamera::Impl::composite(uint64_t frame_index) const {
+  const RenderOptions& o = options;
+  // Premultiplied albedo a_p and coverage c (both 0..255) over the background.
+  cv::Mat img(model.size(), CV_32F);
   const float ink = static_cast<float>(o.ink_black),
               span = static_cast<float>(o.paper_white - o.ink_black);
   const float expo = static_cast<float>(o.exposure);
   for (int i = 0; i < img.rows; ++i) {
-    const uchar* px = s.pixels.ptr<uchar>(i);
-    const float* bg = s.background.ptr<float>(i);
+    const uchar* px = pixels.ptr<uchar>(i);
+    const float* bg = background.ptr<float>(i);
     float* out = img.ptr<float>(i);
     for (int j = 0; j < img.cols; ++j) {
       const float ap = px[2 * j] * (1.0f / 255.0f), c = px[2 * j + 1] * (1.0f / 255.0f);
@@ -266,6 +264,33 @@ cv::Mat SyntheticCamera::render(const Pose& T_cam_board) {
   cv::Mat out8;
   img.convertTo(out8, CV_8U);  // rounds and saturates
   return out8;
+}
+
+cv::Mat SyntheticCamera::render(const Pose& T_cam_board) {
+  Impl& s = *impl_;
+  if (!T_cam_board.is_finite())
+    throw Error(ErrorCode::kInvalidArgument, "render: pose is not finite");
+  const uint64_t frame_index = s.frame++;
+
+  // Homography from the board plane (X, Y, 1) to normalised image coordinates: [r1 r2 t].
+  const Eigen::Matrix3d R = T_cam_board.R();
+  Eigen::Matrix3d H;
+  H.col(0) = R.col(0);
+  H.col(1) = R.col(1);
+  H.col(2) = T_cam_board.t;
+  Eigen::Matrix3d Hinv = H.inverse();
+  if (!Hinv.allFinite()) {
+    // Board plane seen edge-on through the centre of projection: nothing of it is visible.
+    Hinv.setZero();
+  }
+  const int level = s.mip_level(H);
+  const double m = s.metres_per_texel[level];
+  // Board (X, Y) -> texel (u, v) at this level: u = (X + margin) / m - 0.5.
+  Eigen::Matrix3d A;
+  A << 1 / m, 0, s.margin_m / m - 0.5, 0, 1 / m, s.margin_m / m - 0.5, 0, 0, 1;
+  const Eigen::Matrix3f M = (A * Hinv).cast<float>();
+  s.sample_board(s.sheet_roi(T_cam_board), M, level);
+  return s.composite(frame_index);
 }
 
 }  // namespace posecal

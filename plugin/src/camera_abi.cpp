@@ -116,6 +116,123 @@ int remaining_ms(Clock::time_point deadline) {
   return left > 0 ? static_cast<int>(left) : 0;
 }
 
+// Writes frame_NNNNN.png into out_dir; its entry of the grab's "files".
+Json save_png(const Frame& frame, const std::string& out_dir, int index) {
+  namespace fs = std::filesystem;
+  char name[32];
+  std::snprintf(name, sizeof name, "frame_%05d.png", index);
+  const std::string path = (fs::path(out_dir) / name).string();
+  bool ok = false;
+  try {
+    ok = cv::imwrite(path, frame.image);
+  } catch (const cv::Exception& e) {
+    throw Error(ErrorCode::kIo, "cannot write '" + path + "': " + e.what());
+  }
+  if (!ok) throw Error(ErrorCode::kIo, "cannot write '" + path + "'");
+  return {{"file", path},
+                   {"frame_id", frame.frame_id},
+                   {"timestamp_ns", frame.timestamp_ns},
+                   {"width", frame.image.cols},
+                   {"height", frame.image.rows},
+                   {"channels", frame.image.channels()},
+                   {"source_format", pixel_format_name(frame.source_format)}};
+}
+
+// Saves `count` frames of a streaming camera as PNG files before `deadline`; the grab's "files".
+// Throws Error naming how many were saved when the camera times out, vanishes or ends.
+Json save_frames(Camera& camera, const char* camera_uri, int count, const char* out_dir,
+                 Clock::time_point deadline, int timeout_ms) {
+  Json files = Json::array();
+  int saved = 0;
+  while (saved < count) {
+    Frame frame;
+    const FrameStatus st = camera.next_frame(remaining_ms(deadline), &frame);
+    const std::string so_far = " (" + std::to_string(saved) + " of " + std::to_string(count) +
+                               " frames saved in '" + out_dir + "')";
+    if (st == FrameStatus::kTimeout) {
+      throw Error(ErrorCode::kTimeout, "no frame from '" + std::string(camera_uri) + "' within " +
+                                           std::to_string(timeout_ms) + " ms" + so_far);
+    }
+    if (st == FrameStatus::kDisconnected) {
+      throw Error(ErrorCode::kDevice,
+                  "camera '" + std::string(camera_uri) + "' disconnected" + so_far);
+    }
+    if (st == FrameStatus::kEndOfStream) {
+      throw Error(ErrorCode::kNotFound,
+                  "camera '" + std::string(camera_uri) + "' has no more frames" + so_far);
+    }
+    if (frame.image.empty()) {  // a corrupt frame the backend could not decode
+      if (remaining_ms(deadline) == 0) {
+        throw Error(ErrorCode::kTimeout, "no usable frame from '" + std::string(camera_uri) +
+                                             "' within " + std::to_string(timeout_ms) + " ms" +
+                                             so_far);
+      }
+      continue;
+    }
+    files.push_back(save_png(frame, out_dir, saved));
+    ++saved;
+    if (saved < count && remaining_ms(deadline) == 0) {
+      throw Error(ErrorCode::kTimeout,
+                  "the grab did not finish within " + std::to_string(timeout_ms) + " ms (" +
+                      std::to_string(saved) + " of " + std::to_string(count) +
+                      " frames saved in '" + out_dir + "')");
+    }
+  }
+  return files;
+}
+
+struct CameraTestSet {
+  std::vector<Observation> frames;
+  int seen = 0;  // frames read
+};
+
+// The first `want` frames of a streaming camera that show at least min_corners corners of the
+// board, read until `deadline`. check_size(size, what) refuses a frame of the wrong size. Throws
+// Error naming the camera when it vanishes, or when no frame shows the board.
+template <class CheckSize>
+CameraTestSet camera_test_set(Camera& camera, const char* camera_uri, const BoardSpec& spec, int want,
+                              int min_corners, Clock::time_point deadline, int timeout_ms,
+                              const CheckSize& check_size) {
+  CameraTestSet out;
+  std::vector<Observation>& test_set = out.frames;
+  const Board board(spec);
+  int seen = 0;
+  bool ended = false;
+  while (static_cast<int>(test_set.size()) < want && remaining_ms(deadline) > 0) {
+    Frame frame;
+    const FrameStatus st = camera.next_frame(remaining_ms(deadline), &frame);
+    if (st == FrameStatus::kTimeout) break;
+    if (st == FrameStatus::kDisconnected) {
+      throw Error(ErrorCode::kDevice, "camera '" + std::string(camera_uri) +
+                                          "' disconnected after " +
+                                          std::to_string(test_set.size()) + " test frames");
+    }
+    if (st == FrameStatus::kEndOfStream) {
+      ended = true;
+      break;
+    }
+    if (frame.image.empty()) continue;
+    ++seen;
+    check_size(frame.image.size(), "the camera delivers");
+    const Detection d = board.detect(frame.image);
+    if (static_cast<int>(d.size()) >= min_corners) test_set.push_back(Observation::from(d));
+  }
+  if (test_set.empty()) {
+    if (ended) {
+      throw Error(ErrorCode::kDegenerate, "none of the " + std::to_string(seen) +
+                                              " frames of '" + std::string(camera_uri) +
+                                              "' shows " + std::to_string(min_corners) +
+                                              " corners of " + spec.to_string());
+    }
+    throw Error(ErrorCode::kTimeout, "no frame showing the board (" + spec.to_string() +
+                                         ") from '" + std::string(camera_uri) + "' within " +
+                                         std::to_string(timeout_ms) + " ms (" +
+                                         std::to_string(seen) + " frames seen)");
+  }
+  out.seen = seen;
+  return out;
+}
+
 }  // namespace
 
 extern "C" {
@@ -166,59 +283,7 @@ POSECAL_API posecal_status posecal_camera_grab(posecal_context* ctx, const char*
     }
     Streaming s(ctx->impl->open(camera_uri, BoardSpec{}));
     const auto t0 = Clock::now();
-    const auto deadline = t0 + std::chrono::milliseconds(timeout_ms);
-    Json files = Json::array();
-    int saved = 0;
-    while (saved < count) {
-      Frame frame;
-      const FrameStatus st = s.camera->next_frame(remaining_ms(deadline), &frame);
-      const std::string so_far = " (" + std::to_string(saved) + " of " + std::to_string(count) +
-                                 " frames saved in '" + out_dir + "')";
-      if (st == FrameStatus::kTimeout) {
-        throw Error(ErrorCode::kTimeout, "no frame from '" + std::string(camera_uri) + "' within " +
-                                             std::to_string(timeout_ms) + " ms" + so_far);
-      }
-      if (st == FrameStatus::kDisconnected) {
-        throw Error(ErrorCode::kDevice,
-                    "camera '" + std::string(camera_uri) + "' disconnected" + so_far);
-      }
-      if (st == FrameStatus::kEndOfStream) {
-        throw Error(ErrorCode::kNotFound,
-                    "camera '" + std::string(camera_uri) + "' has no more frames" + so_far);
-      }
-      if (frame.image.empty()) {  // a corrupt frame the backend could not decode
-        if (remaining_ms(deadline) == 0) {
-          throw Error(ErrorCode::kTimeout, "no usable frame from '" + std::string(camera_uri) +
-                                               "' within " + std::to_string(timeout_ms) + " ms" +
-                                               so_far);
-        }
-        continue;
-      }
-      char name[32];
-      std::snprintf(name, sizeof name, "frame_%05d.png", saved);
-      const std::string path = (fs::path(out_dir) / name).string();
-      bool ok = false;
-      try {
-        ok = cv::imwrite(path, frame.image);
-      } catch (const cv::Exception& e) {
-        throw Error(ErrorCode::kIo, "cannot write '" + path + "': " + e.what());
-      }
-      if (!ok) throw Error(ErrorCode::kIo, "cannot write '" + path + "'");
-      files.push_back({{"file", path},
-                       {"frame_id", frame.frame_id},
-                       {"timestamp_ns", frame.timestamp_ns},
-                       {"width", frame.image.cols},
-                       {"height", frame.image.rows},
-                       {"channels", frame.image.channels()},
-                       {"source_format", pixel_format_name(frame.source_format)}});
-      ++saved;
-      if (saved < count && remaining_ms(deadline) == 0) {
-        throw Error(ErrorCode::kTimeout,
-                    "the grab did not finish within " + std::to_string(timeout_ms) + " ms (" +
-                        std::to_string(saved) + " of " + std::to_string(count) +
-                        " frames saved in '" + out_dir + "')");
-      }
-    }
+    const Json files = save_frames(*s.camera, camera_uri, count, out_dir, t0 + std::chrono::milliseconds(timeout_ms), timeout_ms);
     Json j;
     j["camera"] = abi::device_json(s.camera->info());
     j["out_dir"] = out_dir;
@@ -290,42 +355,10 @@ POSECAL_API posecal_status posecal_evaluate(posecal_context* ctx, const char* re
       Streaming s(ctx->impl->open(camera_uri, spec));
       j["camera"] = abi::device_json(s.camera->info());
       j["source"] = "camera";
-      const Board board(spec);
-      const auto deadline = t0 + std::chrono::milliseconds(timeout_ms);
-      int seen = 0;
-      bool ended = false;
-      while (static_cast<int>(test_set.size()) < want && remaining_ms(deadline) > 0) {
-        Frame frame;
-        const FrameStatus st = s.camera->next_frame(remaining_ms(deadline), &frame);
-        if (st == FrameStatus::kTimeout) break;
-        if (st == FrameStatus::kDisconnected) {
-          throw Error(ErrorCode::kDevice, "camera '" + std::string(camera_uri) +
-                                              "' disconnected after " +
-                                              std::to_string(test_set.size()) + " test frames");
-        }
-        if (st == FrameStatus::kEndOfStream) {
-          ended = true;
-          break;
-        }
-        if (frame.image.empty()) continue;
-        ++seen;
-        check_size(frame.image.size(), "the camera delivers");
-        const Detection d = board.detect(frame.image);
-        if (static_cast<int>(d.size()) >= min_corners) test_set.push_back(Observation::from(d));
-      }
-      j["frames_seen"] = seen;
-      if (test_set.empty()) {
-        if (ended) {
-          throw Error(ErrorCode::kDegenerate, "none of the " + std::to_string(seen) +
-                                                  " frames of '" + std::string(camera_uri) +
-                                                  "' shows " + std::to_string(min_corners) +
-                                                  " corners of " + spec.to_string());
-        }
-        throw Error(ErrorCode::kTimeout, "no frame showing the board (" + spec.to_string() +
-                                             ") from '" + std::string(camera_uri) + "' within " +
-                                             std::to_string(timeout_ms) + " ms (" +
-                                             std::to_string(seen) + " frames seen)");
-      }
+      const CameraTestSet cts = camera_test_set(*s.camera, camera_uri, spec, want, min_corners,
+                                                t0 + std::chrono::milliseconds(timeout_ms), timeout_ms, check_size);
+      test_set = cts.frames;
+      j["frames_seen"] = cts.seen;
     }
     j["frames_collected"] = test_set.size();
     j.update(abi::evaluation_json(estimate, test_set, truth.get()));

@@ -218,15 +218,13 @@ CameraConfig V4l2CameraImpl::do_current_config() {
   return c;
 }
 
-CameraConfig V4l2CameraImpl::do_validate(const CameraConfig& requested) {
-  CameraConfig out = requested;
-  const v4l2_pix_format cur = read_format();
-
+// The pixel format validate() takes: the requested one, else the current one if posecal decodes
+// it, else the first decodable one the device offers (MJPEG first: full frame rate at high
+// resolution over USB 2).
+uint32_t V4l2CameraImpl::fourcc_to_use(const CameraConfig& requested, const v4l2_pix_format& cur) const {
   uint32_t fourcc = cur.pixelformat;
   if (requested.pixel_format) fourcc = fourcc_for(*requested.pixel_format);
   if (pixel_format_of_fourcc(fourcc) == PixelFormat::kUnknown) {
-    // The device is in a format posecal cannot decode and none was asked for: take the first
-    // decodable one, MJPEG first (full frame rate at high resolution over USB 2).
     fourcc = 0;
     for (uint32_t c :
          {V4L2_PIX_FMT_MJPEG, V4L2_PIX_FMT_JPEG, V4L2_PIX_FMT_YUYV, V4L2_PIX_FMT_GREY}) {
@@ -239,6 +237,34 @@ CameraConfig V4l2CameraImpl::do_validate(const CameraConfig& requested) {
       throw Error(ErrorCode::kUnsupported, who() + " offers no pixel format posecal can decode");
     }
   }
+  return fourcc;
+}
+
+// The exposure validate() takes: exposure_time_absolute counts 100 us units, clamped to the
+// control's range and snapped to its step.
+double V4l2CameraImpl::exposure_to_use(double exposure_us) {
+  Control* e = find_control(V4L2_CID_EXPOSURE_ABSOLUTE);
+  if (!e) {
+    throw Error(ErrorCode::kUnsupported,
+                who() + ": exposure cannot be set (no exposure_time_absolute control)");
+  }
+  if (!(exposure_us > 0) || !std::isfinite(exposure_us)) {
+    throw Error(ErrorCode::kInvalidArgument, who() + ": exposure_us must be positive and finite");
+  }
+  // exposure_time_absolute counts 100 us units.
+  const double units = std::clamp(exposure_us / 100.0, static_cast<double>(e->minimum),
+                                  static_cast<double>(e->maximum));
+  const double step = static_cast<double>(std::max<uint64_t>(e->step, 1));
+  const double snapped = static_cast<double>(e->minimum) +
+                         std::round((units - static_cast<double>(e->minimum)) / step) * step;
+  return 100.0 * std::min(snapped, static_cast<double>(e->maximum));
+}
+
+CameraConfig V4l2CameraImpl::do_validate(const CameraConfig& requested) {
+  CameraConfig out = requested;
+  const v4l2_pix_format cur = read_format();
+
+  const uint32_t fourcc = fourcc_to_use(requested, cur);
   int width = static_cast<int>(cur.width), height = static_cast<int>(cur.height);
   if (requested.roi) {
     if (requested.roi->width <= 0 || requested.roi->height <= 0) {
@@ -275,23 +301,7 @@ CameraConfig V4l2CameraImpl::do_validate(const CameraConfig& requested) {
     if (iv) out.frame_rate_hz = iv->rate_hz();
   }
 
-  if (requested.exposure_us) {
-    Control* e = find_control(V4L2_CID_EXPOSURE_ABSOLUTE);
-    if (!e) {
-      throw Error(ErrorCode::kUnsupported,
-                  who() + ": exposure cannot be set (no exposure_time_absolute control)");
-    }
-    if (!(*requested.exposure_us > 0) || !std::isfinite(*requested.exposure_us)) {
-      throw Error(ErrorCode::kInvalidArgument, who() + ": exposure_us must be positive and finite");
-    }
-    // exposure_time_absolute counts 100 us units.
-    const double units = std::clamp(*requested.exposure_us / 100.0, static_cast<double>(e->minimum),
-                                    static_cast<double>(e->maximum));
-    const double step = static_cast<double>(std::max<uint64_t>(e->step, 1));
-    const double snapped = static_cast<double>(e->minimum) +
-                           std::round((units - static_cast<double>(e->minimum)) / step) * step;
-    out.exposure_us = 100.0 * std::min(snapped, static_cast<double>(e->maximum));
-  }
+  if (requested.exposure_us) out.exposure_us = exposure_to_use(*requested.exposure_us);
 
   if (requested.gain_db) {
     throw Error(ErrorCode::kUnsupported,

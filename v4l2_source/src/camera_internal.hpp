@@ -92,6 +92,8 @@ class V4l2CameraImpl final : public V4l2Camera {
   double read_frame_rate(bool* settable);
 
   const V4l2Format* find_format(uint32_t fourcc) const;
+  uint32_t fourcc_to_use(const CameraConfig& requested, const v4l2_pix_format& current) const;
+  double exposure_to_use(double exposure_us);
   uint32_t fourcc_for(PixelFormat f) const;
   v4l2_pix_format try_format(uint32_t fourcc, int width, int height);
   std::optional<V4l2FrameSize::Interval> nearest_interval(uint32_t fourcc, int width, int height,
@@ -106,6 +108,8 @@ class V4l2CameraImpl final : public V4l2Camera {
 
   void release_buffers(bool device_alive);
   void reopen_for_read_io();
+  std::optional<FrameStatus> read_frame(bool error_reported, Frame* frame);
+  std::optional<FrameStatus> dequeue_frame(bool error_reported, Frame* frame);
   bool deliver(const uint8_t* data, size_t bytes, uint64_t frame_id, int64_t timestamp_ns,
                Frame* frame);
 

@@ -160,87 +160,91 @@ FrameStatus V4l2CameraImpl::do_next_frame(int timeout_ms, Frame* frame) {
       throw Error(ErrorCode::kInternal, who() + ": poll: descriptor is not open");
     }
     const bool error_reported = (p.revents & (POLLERR | POLLHUP)) != 0;
-
-    if (read_io_) {
-      const ssize_t n = io_->read(fd_, read_buffer_.data(), read_buffer_.size());
-      if (n < 0) {
-        const int err = errno;
-        if (err == EAGAIN || err == EINTR) {
-          if (error_reported) {
-            throw Error(ErrorCode::kDevice, who() + ": poll reports an error, read() has no data");
-          }
-          if (Clock::now() >= deadline) return FrameStatus::kTimeout;
-          continue;
-        }
-        if (is_gone(err) || err == EIO) {
-          disconnect(err, "read");
-          return FrameStatus::kDisconnected;
-        }
-        fail("read", err);
-      }
-      if (deliver(read_buffer_.data(), static_cast<size_t>(n), read_frames_++, monotonic_ns(),
-                  frame)) {
-        return FrameStatus::kOk;
-      }
-      if (Clock::now() >= deadline) return FrameStatus::kTimeout;
-      continue;
-    }
-
-    v4l2_buffer b{};
-    b.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
-    b.memory = V4L2_MEMORY_MMAP;
-    if (const int err = ioctl(VIDIOC_DQBUF, &b)) {
-      if (err == EAGAIN) {
-        if (error_reported) {
-          throw Error(ErrorCode::kDevice, who() + ": poll reports an error, no buffer is ready");
-        }
-        if (Clock::now() >= deadline) return FrameStatus::kTimeout;
-        continue;
-      }
-      if (is_gone(err) || err == EIO) {
-        disconnect(err, "VIDIOC_DQBUF");
-        return FrameStatus::kDisconnected;
-      }
-      fail("VIDIOC_DQBUF", err);
-    }
-    if (b.index >= buffers_.size()) {
-      throw Error(ErrorCode::kInternal, who() + ": driver returned buffer index " +
-                                            std::to_string(b.index) + " of " +
-                                            std::to_string(buffers_.size()));
-    }
-    // Frames the driver had to drop for want of a queued buffer show as sequence gaps.
-    if (last_sequence_ && b.sequence > *last_sequence_ + 1) {
-      stats_.frames_dropped += b.sequence - *last_sequence_ - 1;
-    }
-    last_sequence_ = b.sequence;
-    bool ok = false;
-    if (b.flags & V4L2_BUF_FLAG_ERROR || b.bytesused == 0) {
-      ++stats_.frames_incomplete;
-    } else {
-      const int64_t ts =
-          (b.flags & V4L2_BUF_FLAG_TIMESTAMP_MASK) == V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC
-              ? static_cast<int64_t>(b.timestamp.tv_sec) * 1000000000LL +
-                    static_cast<int64_t>(b.timestamp.tv_usec) * 1000
-              : monotonic_ns();
-      const size_t bytes = std::min<size_t>(b.bytesused, buffers_[b.index].length);
-      ok = deliver(static_cast<const uint8_t*>(buffers_[b.index].addr), bytes, b.sequence, ts,
-                   frame);
-    }
-    // The decoded image is a copy, so the buffer can go straight back to the driver.
-    v4l2_buffer q{};
-    q.index = b.index;
-    q.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
-    q.memory = V4L2_MEMORY_MMAP;
-    if (const int err = ioctl(VIDIOC_QBUF, &q)) {
-      if (is_gone(err) || err == EIO) {
-        disconnect(err, "VIDIOC_QBUF");
-        return ok ? FrameStatus::kOk : FrameStatus::kDisconnected;
-      }
-      fail("VIDIOC_QBUF", err);
-    }
-    if (ok) return FrameStatus::kOk;
+    const std::optional<FrameStatus> st = read_io_ ? read_frame(error_reported, frame) : dequeue_frame(error_reported, frame);
+    if (st) return *st;
     if (Clock::now() >= deadline) return FrameStatus::kTimeout;
   }
+}
+
+// read() I/O: one frame, or nullopt to wait on (no data yet, or an incomplete frame).
+std::optional<FrameStatus> V4l2CameraImpl::read_frame(bool error_reported, Frame* frame) {
+  const ssize_t n = io_->read(fd_, read_buffer_.data(), read_buffer_.size());
+  if (n < 0) {
+    const int err = errno;
+    if (err == EAGAIN || err == EINTR) {
+      if (error_reported) {
+        throw Error(ErrorCode::kDevice, who() + ": poll reports an error, read() has no data");
+      }
+      return std::nullopt;
+    }
+    if (is_gone(err) || err == EIO) {
+      disconnect(err, "read");
+      return FrameStatus::kDisconnected;
+    }
+    fail("read", err);
+  }
+  if (deliver(read_buffer_.data(), static_cast<size_t>(n), read_frames_++, monotonic_ns(),
+              frame)) {
+    return FrameStatus::kOk;
+  }
+  return std::nullopt;
+}
+
+// Streaming I/O: dequeue a buffer, decode it, queue it again; nullopt to wait on.
+std::optional<FrameStatus> V4l2CameraImpl::dequeue_frame(bool error_reported, Frame* frame) {
+  v4l2_buffer b{};
+  b.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
+  b.memory = V4L2_MEMORY_MMAP;
+  if (const int err = ioctl(VIDIOC_DQBUF, &b)) {
+    if (err == EAGAIN) {
+      if (error_reported) {
+        throw Error(ErrorCode::kDevice, who() + ": poll reports an error, no buffer is ready");
+      }
+      return std::nullopt;
+    }
+    if (is_gone(err) || err == EIO) {
+      disconnect(err, "VIDIOC_DQBUF");
+      return FrameStatus::kDisconnected;
+    }
+    fail("VIDIOC_DQBUF", err);
+  }
+  if (b.index >= buffers_.size()) {
+    throw Error(ErrorCode::kInternal, who() + ": driver returned buffer index " +
+                                          std::to_string(b.index) + " of " +
+                                          std::to_string(buffers_.size()));
+  }
+  // Frames the driver had to drop for want of a queued buffer show as sequence gaps.
+  if (last_sequence_ && b.sequence > *last_sequence_ + 1) {
+    stats_.frames_dropped += b.sequence - *last_sequence_ - 1;
+  }
+  last_sequence_ = b.sequence;
+  bool ok = false;
+  if (b.flags & V4L2_BUF_FLAG_ERROR || b.bytesused == 0) {
+    ++stats_.frames_incomplete;
+  } else {
+    const int64_t ts =
+        (b.flags & V4L2_BUF_FLAG_TIMESTAMP_MASK) == V4L2_BUF_FLAG_TIMESTAMP_MONOTONIC
+            ? static_cast<int64_t>(b.timestamp.tv_sec) * 1000000000LL +
+                  static_cast<int64_t>(b.timestamp.tv_usec) * 1000
+            : monotonic_ns();
+    const size_t bytes = std::min<size_t>(b.bytesused, buffers_[b.index].length);
+    ok = deliver(static_cast<const uint8_t*>(buffers_[b.index].addr), bytes, b.sequence, ts,
+                 frame);
+  }
+  // The decoded image is a copy, so the buffer can go straight back to the driver.
+  v4l2_buffer q{};
+  q.index = b.index;
+  q.type = V4L2_BUF_TYPE_VIDEO_CAPTURE;
+  q.memory = V4L2_MEMORY_MMAP;
+  if (const int err = ioctl(VIDIOC_QBUF, &q)) {
+    if (is_gone(err) || err == EIO) {
+      disconnect(err, "VIDIOC_QBUF");
+      return ok ? FrameStatus::kOk : FrameStatus::kDisconnected;
+    }
+    fail("VIDIOC_QBUF", err);
+  }
+  if (ok) return FrameStatus::kOk;
+  return std::nullopt;
 }
 
 }  // namespace posecal::v4l2

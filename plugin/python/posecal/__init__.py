@@ -314,8 +314,11 @@ class Context(_Handle):
         return Calibration(h)
 
     def open(self, uri, **config):
-        """Opens a calibration session on a camera. config: target, operator,
-        convergence_threshold, max_keyframes, ... (posecal_session_open)."""
+        """Opens a calibration session on a camera. config: the keys of posecal_session_open
+        (core/session/session_keys.def): target, operator, convergence_threshold, max_keyframes,
+        jaccard_threshold, still_motion_px, constraint_factor, target_timeout_frames,
+        pose_candidates, lock_settings, max_tilt_deg, fixed, convergence_measure,
+        measured_convergence, candidate_score, view_candidates, view_must_serve_target."""
         return Session(self, uri, **config)
 
 

@@ -1,0 +1,140 @@
+// The one table of session keys (core/session/session_keys.def) against everything that states
+// them again: the options' own defaults and validation, and the key lists of posecal.h,
+// docs/c-api.md and the Python binding.
+#include <gtest/gtest.h>
+
+#include <fstream>
+#include <sstream>
+#include <string>
+
+#include "common/error.hpp"
+#include "session/session_options.hpp"
+
+namespace posecal {
+namespace {
+
+std::string read_text(const std::string& relative) {
+  std::ifstream in(std::string(POSECAL_SOURCE_DIR) + "/" + relative);
+  std::stringstream ss;
+  ss << in.rdbuf();
+  return ss.str();
+}
+
+// The key's default, parsed from its text as the table writes it.
+SessionKeyValue default_value(const SessionKeyInfo& k) {
+  const std::string text = k.default_text;
+  switch (k.kind) {
+    case SessionKeyKind::kNumber: return std::stod(text);
+    case SessionKeyKind::kInteger: return std::stoll(text);
+    case SessionKeyKind::kBool: return text == "true";
+    case SessionKeyKind::kChoice:
+    case SessionKeyKind::kText: return text;
+    case SessionKeyKind::kTextList: return std::vector<std::string>{};
+  }
+  return text;
+}
+
+TEST(SessionKeys, DefaultsAreTheOptionsDefaults) {
+  const SessionOptions defaults;
+  std::string why;
+  ASSERT_TRUE(defaults.is_valid(&why)) << why;
+  for (const SessionKeyInfo& k : session_keys()) {
+    EXPECT_TRUE(get_session_key(defaults, k.key) == default_value(k)) << k.key << ": the table's default '"
+                                                                       << k.default_text << "' is not the struct's";
+  }
+}
+
+TEST(SessionKeys, RangesAreTheValidationsRanges) {
+  // Each numeric key's range endpoints are valid options, and just outside them the options are
+  // not (the ABI and the engine cannot disagree, as max_tilt_deg 89 once did).
+  for (const SessionKeyInfo& k : session_keys()) {
+    if (k.kind != SessionKeyKind::kNumber && k.kind != SessionKeyKind::kInteger) continue;
+    const bool integer = k.kind == SessionKeyKind::kInteger;
+    for (const double v : {k.lo, k.hi}) {
+      SessionOptions o;
+      integer ? set_session_key(&o, k.key, static_cast<long long>(v)) : set_session_key(&o, k.key, v);
+      std::string why;
+      EXPECT_TRUE(o.is_valid(&why)) << k.key << " = " << v << ": " << why;
+    }
+    const double step = integer ? 1.0 : std::max(1e-9, 1e-6 * (k.hi - k.lo));
+    for (const double v : {k.lo - step, k.hi + step}) {
+      SessionOptions o;
+      try {
+        integer ? set_session_key(&o, k.key, static_cast<long long>(v)) : set_session_key(&o, k.key, v);
+        ADD_FAILURE() << k.key << " = " << v << " was accepted";
+      } catch (const Error& e) {
+        EXPECT_EQ(e.code(), ErrorCode::kInvalidArgument);
+        EXPECT_NE(std::string(e.what()).find(k.key), std::string::npos) << e.what();
+      }
+    }
+  }
+}
+
+// Set directly (as a C++ host of the engine would), out-of-range members fail EngineOptions'
+// validation too, naming the key: the table's ranges are the engine's.
+#define POSECAL_OUT_OF_RANGE_Number(key, member, lo, hi, step)                      \
+  for (const double v : {(lo) - (step), (hi) + (step)}) {                            \
+    EngineOptions o;                                                                 \
+    o.member = static_cast<decltype(o.member)>(v);                                   \
+    std::string why;                                                                 \
+    EXPECT_FALSE(o.is_valid(&why)) << #key " = " << v;                               \
+    EXPECT_NE(why.find(#key), std::string::npos) << why;                             \
+  }
+#define POSECAL_OUT_OF_RANGE_Integer(key, member, lo, hi, step) POSECAL_OUT_OF_RANGE_Number(key, member, lo, hi, 1)
+#define POSECAL_OUT_OF_RANGE_Bool(...)
+#define POSECAL_OUT_OF_RANGE_Choice(...)
+#define POSECAL_OUT_OF_RANGE_Text(...)
+#define POSECAL_OUT_OF_RANGE_TextList(...)
+#define POSECAL_OUT_OF_RANGE_engine(kind, key, member, lo, hi) \
+  POSECAL_OUT_OF_RANGE_##kind(key, member, lo, hi, std::max(1e-9, 1e-6 * ((hi) - (lo))))
+#define POSECAL_OUT_OF_RANGE_session(...)
+
+TEST(SessionKeys, EngineValidationUsesTheTablesRanges) {
+#define POSECAL_KEY(scope, key, kind, member, lo, hi, choices, def, alias, doc) \
+  POSECAL_OUT_OF_RANGE_##scope(kind, key, member, lo, hi)
+#include "session/session_keys.def"
+#undef POSECAL_KEY
+}
+
+TEST(SessionKeys, ValuesOfTheWrongKindAreRefusedNamingTheKey) {
+  SessionOptions o;
+  for (const SessionKeyInfo& k : session_keys()) {
+    const SessionKeyValue wrong = k.kind == SessionKeyKind::kBool ? SessionKeyValue(std::string("yes"))
+                                                                  : SessionKeyValue(true);
+    try {
+      set_session_key(&o, k.key, wrong);
+      ADD_FAILURE() << k.key << " accepted a value of the wrong kind";
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find(k.key), std::string::npos) << e.what();
+    }
+  }
+  EXPECT_THROW(set_session_key(&o, "no_such_key", 1.0), Error);
+  EXPECT_THROW(set_session_key(&o, "convergence_measure", std::string("median")), Error);
+  EXPECT_THROW(set_session_key(&o, "target", std::string("charuco:1x1")), Error);
+}
+
+TEST(SessionKeys, ChoicesRoundTrip) {
+  SessionOptions o;
+  set_session_key(&o, "operator", std::string("robot"));
+  EXPECT_TRUE(o.engine.robot);
+  set_session_key(&o, "convergence_measure", std::string("std"));
+  EXPECT_EQ(o.engine.convergence_measure, EngineOptions::ConvergenceMeasure::kStd);
+  EXPECT_TRUE(get_session_key(o, "convergence_measure") == SessionKeyValue(std::string("std")));
+  set_session_key(&o, "fixed", std::vector<std::string>{"k2", "k3"});
+  EXPECT_EQ(o.engine.calibration.fixed, (std::vector<std::string>{"k2", "k3"}));
+}
+
+TEST(SessionKeys, EveryKeyIsDocumentedWhereHostsLook) {
+  const std::string header = read_text("plugin/include/posecal.h");
+  const std::string c_api = read_text("docs/c-api.md");
+  const std::string python = read_text("plugin/python/posecal/__init__.py");
+  ASSERT_FALSE(header.empty() || c_api.empty() || python.empty());
+  for (const SessionKeyInfo& k : session_keys()) {
+    EXPECT_NE(header.find(std::string("\"") + k.key + "\""), std::string::npos) << k.key << " not in posecal.h";
+    EXPECT_NE(c_api.find(std::string("`") + k.key + "`"), std::string::npos) << k.key << " not in docs/c-api.md";
+    EXPECT_NE(python.find(k.key), std::string::npos) << k.key << " not in the Python binding's docstring";
+  }
+}
+
+}  // namespace
+}  // namespace posecal
