@@ -1,5 +1,5 @@
 // Camera sources built into core: images:// (replays a folder in name order) and external (the
-// host pushes frames). sim:// lives in sim/simulation.hpp.
+// host pushes frames). sim:// lives in sim/sim_camera.hpp.
 #pragma once
 
 #include <memory>

@@ -11,7 +11,7 @@
 #include "evaluation.hpp"
 #include "json_report.hpp"
 #include "posecal.h"
-#include "sim/simulation.hpp"
+#include "sim/sim_camera.hpp"
 #include "io/model_file.hpp"
 
 using namespace posecal;

@@ -4,7 +4,7 @@
 
 #include "abi_common.hpp"
 #include "common/error.hpp"
-#include "sim/simulation.hpp"
+#include "sim/sim_camera.hpp"
 #include "device/sources.hpp"
 #ifndef POSECAL_ABI_NO_HW_BACKENDS
 #include "posecal/aravis_backend.hpp"

@@ -5,7 +5,7 @@
 #include <vector>
 
 #include "calib/calibration.hpp"
-#include "sim/simulation.hpp"
+#include "sim/sim_camera.hpp"
 
 namespace posecal::abi {
 

@@ -19,7 +19,7 @@
 #include "session_config.hpp"
 #include "posecal.h"
 #include "session/session.hpp"
-#include "sim/simulation.hpp"
+#include "sim/sim_camera.hpp"
 
 using namespace posecal;
 using posecal::abi::guarded;

@@ -30,7 +30,7 @@
 #include <vector>
 
 #include "device/camera.hpp"
-#include "sim/simulation.hpp"
+#include "sim/sim_camera.hpp"
 #include "sim/synthetic.hpp"
 
 namespace posecal::testing {

@@ -27,7 +27,7 @@
 
 #include "calib/metrics.hpp"
 #include "session/session.hpp"
-#include "sim/simulation.hpp"
+#include "sim/sim_camera.hpp"
 #include "board/views.hpp"
 #include "lens/reference_models.hpp"
 #include "calib/information.hpp"

@@ -28,7 +28,7 @@
 #include "calib/calibration.hpp"
 #include "select/engine.hpp"
 #include "select/pose_rules.hpp"
-#include "sim/simulation.hpp"
+#include "sim/sim_camera.hpp"
 #include "select/view_candidates.hpp"
 #include "board/views.hpp"
 #include "lens/reference_models.hpp"

@@ -22,7 +22,7 @@
 #include "lens/reference_models.hpp"
 #include "posecal/aravis_backend.hpp"
 #include "rig.hpp"
-#include "sim/simulation.hpp"
+#include "sim/sim_camera.hpp"
 
 namespace posecal {
 namespace {

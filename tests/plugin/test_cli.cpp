@@ -6,7 +6,9 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <array>
+#include <cctype>
 #include <chrono>
 #include <cstdio>
 #include <filesystem>
@@ -14,6 +16,7 @@
 #include <nlohmann/json.hpp>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgcodecs.hpp>
+#include <regex>
 #include <set>
 #include <sstream>
 
@@ -190,6 +193,12 @@ TEST(Cli, SimulateExitCodes) {
   const auto j = nlohmann::json::parse(r.out);
   EXPECT_FALSE(j["converged"].get<bool>());
   EXPECT_EQ(j["keyframes"], 3);
+  // The intrinsics are the result's covariance_order (the lens model's parameters).
+  ASSERT_EQ(j["covariance_order"].size(), 9u) << r.out;
+  for (const auto& name : j["covariance_order"]) {
+    EXPECT_TRUE(j[name.get<std::string>()].is_number()) << name;
+    EXPECT_TRUE(j["std"][name.get<std::string>()].is_number()) << name;
+  }
   EXPECT_EQ(run("simulate --operator cat").status, 1);
   EXPECT_EQ(run("simulate --seed x").status, 1);
   EXPECT_EQ(run("simulate --camera-model /nonexistent.yml").status, 2);
@@ -213,12 +222,13 @@ TEST(Cli, SimulateWithFixedParameters) {
   r = run("simulate --fix k2,,k3");
   EXPECT_EQ(r.status, 1);
   EXPECT_NE(r.out.find("empty parameter name"), std::string::npos) << r.out;
+  // A choice outside the table's list is a usage error, named by the canonical flag.
   r = run("simulate --measure cat");
-  EXPECT_EQ(r.status, 2);
-  EXPECT_NE(r.out.find("convergence_measure"), std::string::npos) << r.out;
+  EXPECT_EQ(r.status, 1);
+  EXPECT_NE(r.out.find("--convergence-measure"), std::string::npos) << r.out;
   r = run("simulate --score cat");
-  EXPECT_EQ(r.status, 2);
-  EXPECT_NE(r.out.find("candidate_score"), std::string::npos) << r.out;
+  EXPECT_EQ(r.status, 1);
+  EXPECT_NE(r.out.find("--candidate-score"), std::string::npos) << r.out;
 }
 
 // --views: generic view candidates through the CLI and the session config.
@@ -230,7 +240,193 @@ TEST(Cli, SimulateWithViewCandidates) {
   EXPECT_LE(j["keyframes"].get<int>(), 20);
   r = run("simulate --views -1");
   EXPECT_EQ(r.status, 1);
-  EXPECT_NE(r.out.find("views"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("--view-candidates"), std::string::npos) << r.out;
+}
+
+namespace {
+
+// One key of core/session/session_keys.def, read as text: the CLI generates its session-config
+// flags from that table, so the test reads the table itself rather than a list of its own.
+struct TableKey {
+  std::string key, alias;
+};
+
+std::vector<TableKey> session_table_keys() {
+  std::ifstream in(std::string(POSECAL_SOURCE_DIR) + "/core/session/session_keys.def");
+  std::stringstream ss;
+  ss << in.rdbuf();
+  const std::string text = ss.str();
+  const std::string mark = "\nPOSECAL_KEY(";  // not the "// POSECAL_KEY(" of the comment
+  const std::regex literal("\"((?:[^\"\\\\]|\\\\.)*)\"");
+  std::vector<TableKey> keys;
+  for (size_t at = text.find(mark); at != std::string::npos;) {
+    const size_t next = text.find(mark, at + 1);
+    const std::string entry = text.substr(at + mark.size(), next - at - mark.size());
+    // scope, key, kind, member, lo, hi, then the literals choices, default, cli_alias, doc
+    const size_t c1 = entry.find(','), c2 = entry.find(',', c1 + 1);
+    std::string key = entry.substr(c1 + 1, c2 - c1 - 1);
+    key.erase(std::remove(key.begin(), key.end(), ' '), key.end());
+    std::vector<std::string> literals;
+    for (std::sregex_iterator it(entry.begin(), entry.end(), literal), end; it != end; ++it) {
+      literals.push_back((*it)[1]);
+    }
+    EXPECT_EQ(literals.size(), 4u) << entry;
+    keys.push_back({key, literals.size() > 2 ? literals[2] : ""});
+    at = next;
+  }
+  return keys;
+}
+
+// "--key" with '-' for '_'.
+std::string flag_of(std::string key) {
+  std::replace(key.begin(), key.end(), '_', '-');
+  return "--" + key;
+}
+
+// True if `help` names `flag` as a whole word (--target, not the start of --target-timeout-frames).
+bool names_flag(const std::string& help, const std::string& flag) {
+  for (size_t at = help.find(flag); at != std::string::npos; at = help.find(flag, at + 1)) {
+    const char after = at + flag.size() < help.size() ? help[at + flag.size()] : ' ';
+    if (!std::isalnum(static_cast<unsigned char>(after)) && after != '-' && after != '_') {
+      return true;
+    }
+  }
+  return false;
+}
+
+}  // namespace
+
+// Every command has its own --help, on stdout with exit code 0; so has posecal itself, while
+// posecal without a command is a usage error.
+TEST(Cli, EveryCommandHasItsOwnHelp) {
+  const std::vector<std::string> commands = {"calibrate", "station",  "evaluate",
+                                             "grab",      "features", "simulate",
+                                             "board",     "list",     "version"};
+  const CliRun top = run("--help", true);
+  ASSERT_EQ(top.status, 0) << top.out;
+  for (const std::string& c : commands) {
+    EXPECT_NE(top.out.find("\n  " + c + " "), std::string::npos) << c << " in\n" << top.out;
+    for (const char* help : {" --help", " -h"}) {
+      const CliRun r = run(c + help, true);
+      EXPECT_EQ(r.status, 0) << c << help << ": " << r.out;
+      EXPECT_NE(r.out.find("Usage: posecal " + c + " [OPTIONS]"), std::string::npos)
+          << c << help << ": " << r.out;
+    }
+  }
+  EXPECT_NE(run("grab --help", true).out.find("--count"), std::string::npos);
+  EXPECT_EQ(run("help", true).status, 0);
+  CliRun r = run("", true);
+  EXPECT_EQ(r.status, 1);
+  EXPECT_EQ(r.out, "");  // the usage goes to stderr
+  EXPECT_NE(run("").out.find("Usage: posecal"), std::string::npos);
+}
+
+TEST(Cli, VersionFlagIsTheVersionCommand) {
+  const CliRun flag = run("--version", true), command = run("version", true);
+  EXPECT_EQ(flag.status, 0);
+  EXPECT_EQ(command.status, 0);
+  EXPECT_EQ(flag.out, command.out);
+  EXPECT_EQ(flag.out.rfind("posecal ", 0), 0u) << flag.out;
+  EXPECT_NE(flag.out.find("(ABI 1)"), std::string::npos) << flag.out;
+}
+
+// The session-config flags are the table's keys: each key (and its older alias) is a flag of
+// every session command.
+TEST(Cli, EverySessionKeyIsAFlag) {
+  const std::vector<TableKey> keys = session_table_keys();
+  ASSERT_GE(keys.size(), 17u);
+  for (const char* command : {"simulate", "station", "calibrate"}) {
+    const CliRun help = run(std::string(command) + " --help", true);
+    ASSERT_EQ(help.status, 0) << help.out;
+    for (const TableKey& k : keys) {
+      EXPECT_TRUE(names_flag(help.out, flag_of(k.key))) << command << ": " << flag_of(k.key);
+      if (k.alias.empty()) continue;
+      const std::string alias = "--" + (k.alias[0] == '!' ? k.alias.substr(1) : k.alias);
+      EXPECT_TRUE(names_flag(help.out, alias)) << command << ": " << alias;
+    }
+  }
+}
+
+// The flags check the table's ranges before anything runs (max_tilt_deg is [1, 88]); a value
+// inside them reaches the library, which opens the session with it.
+TEST(Cli, SessionFlagsCheckTheTablesRanges) {
+  CliRun r = run("simulate --max-tilt-deg 89");
+  EXPECT_EQ(r.status, 1) << r.out;
+  EXPECT_NE(r.out.find("max-tilt-deg"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("posecal simulate: "), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("(see posecal --help)"), std::string::npos) << r.out;
+  // One frame: the session opened (the library accepted the config) but cannot calibrate.
+  for (const char* ok : {"--max-tilt-deg 88", "--max-tilt-deg=88", "--lock-settings=false",
+                         "--fixed k3", "--operator=robot", "--target chessboard:9x6:0.025"}) {
+    r = run(std::string("simulate --max-frames 1 ") + ok);
+    EXPECT_EQ(r.status, 2) << ok << ": " << r.out;
+    EXPECT_NE(r.out.find("fewer than two keyframes [POSECAL_E_STATE]"), std::string::npos)
+        << ok << ": " << r.out;
+  }
+  for (const char* bad : {"--max-keyframes 2", "--max-keyframes 5.5", "--threshold 1.5",
+                          "--convergence-threshold 1.5", "--lock-settings=maybe",
+                          "--prospective-only --measured-convergence"}) {
+    r = run(std::string("simulate ") + bad);
+    EXPECT_EQ(r.status, 1) << bad << ": " << r.out;
+  }
+  // The alias is the canonical flag: its message names the canonical flag.
+  EXPECT_NE(run("simulate --threshold 1.5").out.find("--convergence-threshold"), std::string::npos);
+}
+
+// An alias and the canonical flag make the same session config: the same run, which the value
+// changes (0.99: every parameter converges at the second keyframe; the default would need more
+// than five). The text listing shows the result's covariance_order.
+TEST(Cli, AliasAndCanonicalFlagAreOneSessionKey) {
+  const std::string base = "simulate --seed 3 --max-keyframes 5 ";
+  const CliRun a = run(base + "--threshold 0.99 --json", true);
+  ASSERT_EQ(a.status, 0) << a.out;
+  const auto j = nlohmann::json::parse(a.out);
+  EXPECT_EQ(j["keyframes"], 2);
+  const CliRun b = run(base + "--convergence-threshold=0.99", true);
+  ASSERT_EQ(b.status, 0) << b.out;
+  EXPECT_EQ(b.out.rfind("converged after 2 keyframes (" +
+                            std::to_string(j["frames_processed"].get<int>()) + " frames",
+                        0),
+            0u)
+      << b.out;
+  ASSERT_EQ(j["covariance_order"].size(), 9u);
+  for (const auto& name : j["covariance_order"]) {
+    const std::string n = name.get<std::string>();
+    char line[128];
+    std::snprintf(line, sizeof line, "\n  %-3s = %14.6f  +- %.6f", n.c_str(), j[n].get<double>(),
+                  j["std"][n].get<double>());
+    EXPECT_NE(b.out.find(line), std::string::npos) << line << " in\n" << b.out;
+  }
+}
+
+// --prospective-only (the table's "!" alias) sets measured_convergence false: the ratio test on
+// captured keyframes, which converges fx and fy at seed 3's fifth keyframe, no longer runs.
+TEST(Cli, ProspectiveOnlyTurnsMeasuredConvergenceOff) {
+  const std::string base = "simulate --seed 3 --max-keyframes 5 --events --json";
+  const std::string measured = "by the last keyframe";  // the measured test's event message
+  CliRun r = run(base);
+  ASSERT_EQ(r.status, 3) << r.out;
+  EXPECT_NE(r.out.find(measured), std::string::npos) << r.out;
+  EXPECT_EQ(nlohmann::json::parse(lines_of(r.out).back())["keyframes"], 5);
+  r = run(base + " --prospective-only");
+  ASSERT_EQ(r.status, 3) << r.out;
+  EXPECT_EQ(r.out.find(measured), std::string::npos) << r.out;
+  EXPECT_EQ(nlohmann::json::parse(lines_of(r.out).back())["keyframes"], 5);
+}
+
+// operator is a session key now (not simulate's URI option): the simulated operator follows it,
+// and calibrate --camera puts it into the session config too.
+TEST(Cli, OperatorIsASessionKey) {
+  const CliRun r = run("simulate --seed 2 --max-keyframes 3 --operator robot --json", true);
+  ASSERT_EQ(r.status, 3) << r.out;
+  const auto j = nlohmann::json::parse(r.out);
+  EXPECT_NE(j["camera"]["uri"].get<std::string>().find("operator=robot"), std::string::npos)
+      << r.out;
+  CliRun c = run("calibrate --camera 'sim://?seed=2&operator=person' --operator robot");
+  EXPECT_EQ(c.status, 2) << c.out;
+  EXPECT_NE(c.out.find("contradicts"), std::string::npos) << c.out;
+  c = run("calibrate --camera sim:// --guide stdio --operator person");
+  EXPECT_EQ(c.status, 1) << c.out;
 }
 
 // posecal station over four simulated cameras: all converge, one result file per camera named

@@ -1,15 +1,15 @@
 #include <gtest/gtest.h>
 
+#include <Eigen/LU>
+#include <algorithm>
 #include <cstdio>
 #include <fstream>
 #include <opencv2/calib3d.hpp>
 #include <random>
 
-#include <Eigen/LU>
-
-#include "lens/camera_model.hpp"
 #include "common/error.hpp"
 #include "io/model_file.hpp"
+#include "lens/camera_model.hpp"
 #include "lens/reference_models.hpp"
 
 using namespace posecal;
@@ -18,14 +18,32 @@ namespace {
 
 const std::string kData = std::string(POSECAL_SOURCE_DIR) + "/data/";
 
-CameraModel strong_model() {
-  return CameraModel::opencv5(1280, 720, 1000, 1010, 650, 350, {-0.25, 0.12, 0.001, -0.002, -0.02});
+// One strongly distorted sample of each lens model of the table (lens_models.hpp): the
+// projection, derivative, unprojection, distortion-map and file tests below run on each, and
+// EveryLensModelHasASample fails until a new model adds its sample here.
+std::vector<CameraModel> sample_models() {
+  return {
+      CameraModel::opencv5(1280, 720, 1000, 1010, 650, 350, {-0.25, 0.12, 0.001, -0.002, -0.02})};
 }
+
+CameraModel strong_model() { return sample_models().front(); }
 
 }  // namespace
 
+TEST(CameraModel, EveryLensModelHasASample) {
+  std::vector<LensModel> sampled;
+  for (const CameraModel& m : sample_models()) sampled.push_back(m.lens_model());
+  for (LensModel model : lens_models()) {
+    EXPECT_NE(std::find(sampled.begin(), sampled.end(), model), sampled.end())
+        << lens_model_name(model) << " has no sample in sample_models()";
+  }
+}
+
 TEST(CameraModel, ProjectionMatchesOpenCV) {
-  for (const CameraModel& m : {c525_reference_model(), strong_model()}) {
+  std::vector<CameraModel> models = sample_models();
+  models.push_back(c525_reference_model());
+  for (const CameraModel& m : models) {
+    SCOPED_TRACE(lens_model_name(m.lens_model()));
     std::mt19937_64 rng(3);
     std::uniform_real_distribution<double> U(-0.5, 0.5);
     std::vector<cv::Point3d> pts;
@@ -42,14 +60,15 @@ TEST(CameraModel, ProjectionMatchesOpenCV) {
   }
 }
 
-TEST(CameraModel, JacobiansMatchFiniteDifferences) {
-  const CameraModel m = strong_model();
+namespace {
+
+void expect_jacobians_match_finite_differences(const CameraModel& m) {
   const Eigen::Vector3d p(0.21, -0.13, 0.9);
   Eigen::Vector2d uv;
   Eigen::Matrix<double, 2, 3> Jp;
   Eigen::Matrix<double, 2, Eigen::Dynamic> Jc;
   ASSERT_TRUE(m.project(p, &uv, &Jp, &Jc));
-  ASSERT_EQ(Jc.cols(), 9);
+  ASSERT_EQ(Jc.cols(), m.num_params());
   const double h = 1e-6;
   for (int k = 0; k < 3; ++k) {
     Eigen::Vector3d a = p, b = p;
@@ -62,7 +81,7 @@ TEST(CameraModel, JacobiansMatchFiniteDifferences) {
     EXPECT_NEAR(fd.x(), Jp(0, k), 1e-5 * (1 + std::abs(fd.x())));
     EXPECT_NEAR(fd.y(), Jp(1, k), 1e-5 * (1 + std::abs(fd.y())));
   }
-  for (int k = 0; k < 9; ++k) {
+  for (int k = 0; k < m.num_params(); ++k) {
     CameraModel a = m, b = m;
     a.params()[k] += h;
     b.params()[k] -= h;
@@ -75,23 +94,35 @@ TEST(CameraModel, JacobiansMatchFiniteDifferences) {
   }
 }
 
+}  // namespace
+
+TEST(CameraModel, JacobiansMatchFiniteDifferences) {
+  for (const CameraModel& m : sample_models()) {
+    SCOPED_TRACE(lens_model_name(m.lens_model()));
+    expect_jacobians_match_finite_differences(m);
+  }
+}
+
 TEST(CameraModel, UnprojectInvertsProjectAndAgreesWithOpenCV) {
-  const CameraModel m = strong_model();
-  std::vector<cv::Point2d> px;
-  for (int v = 0; v < m.height(); v += 37)
-    for (int u = 0; u < m.width(); u += 41) px.emplace_back(u, v);
-  std::vector<cv::Point2d> cvn;
-  cv::undistortPoints(
-      px, cvn, cv::Mat(m.camera_matrix()), m.distortion_coefficients(), cv::noArray(),
-      cv::noArray(), cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 200, 1e-14));
-  for (size_t i = 0; i < px.size(); ++i) {
-    Eigen::Vector2d xn, back;
-    ASSERT_TRUE(m.unproject(Eigen::Vector2d(px[i].x, px[i].y), &xn)) << px[i];
-    ASSERT_TRUE(m.project(Eigen::Vector3d(xn.x(), xn.y(), 1), &back));
-    EXPECT_NEAR(back.x(), px[i].x, 1e-7);
-    EXPECT_NEAR(back.y(), px[i].y, 1e-7);
-    EXPECT_NEAR(xn.x(), cvn[i].x, 1e-6);
-    EXPECT_NEAR(xn.y(), cvn[i].y, 1e-6);
+  for (const CameraModel& m : sample_models()) {
+    SCOPED_TRACE(lens_model_name(m.lens_model()));
+    std::vector<cv::Point2d> px;
+    for (int v = 0; v < m.height(); v += 37)
+      for (int u = 0; u < m.width(); u += 41) px.emplace_back(u, v);
+    std::vector<cv::Point2d> cvn;
+    cv::undistortPoints(
+        px, cvn, cv::Mat(m.camera_matrix()), m.distortion_coefficients(), cv::noArray(),
+        cv::noArray(),
+        cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 200, 1e-14));
+    for (size_t i = 0; i < px.size(); ++i) {
+      Eigen::Vector2d xn, back;
+      ASSERT_TRUE(m.unproject(Eigen::Vector2d(px[i].x, px[i].y), &xn)) << px[i];
+      ASSERT_TRUE(m.project(Eigen::Vector3d(xn.x(), xn.y(), 1), &back));
+      EXPECT_NEAR(back.x(), px[i].x, 1e-7);
+      EXPECT_NEAR(back.y(), px[i].y, 1e-7);
+      EXPECT_NEAR(xn.x(), cvn[i].x, 1e-6);
+      EXPECT_NEAR(xn.y(), cvn[i].y, 1e-6);
+    }
   }
 }
 
@@ -116,8 +147,10 @@ TEST(CameraModel, FoldFreeRadiusIsABoundAndChangesNoResult) {
   const std::vector<CameraModel> models = {
       c525_reference_model(),
       strong_model(),
-      CameraModel::opencv5(1000, 1000, 500, 500, 499.5, 499.5, {-0.6, 0, 0, 0, 0}),      // folds at r 0.745
-      CameraModel::opencv5(1280, 720, 600, 600, 640, 360, {0.3, -0.9, 0.02, -0.03, 0.4}),  // folds, tangential
+      CameraModel::opencv5(1000, 1000, 500, 500, 499.5, 499.5,
+                           {-0.6, 0, 0, 0, 0}),  // folds at r 0.745
+      CameraModel::opencv5(1280, 720, 600, 600, 640, 360,
+                           {0.3, -0.9, 0.02, -0.03, 0.4}),  // folds, tangential
       CameraModel::opencv5(640, 480, 500, 500, 320, 240, {0, 0, 0, 0, 0}),
   };
   for (size_t mi = 0; mi < models.size(); ++mi) {
@@ -177,7 +210,8 @@ TEST(CameraModel, FoldFreeRadiusIsABoundAndChangesNoResult) {
         // the preimage; where it succeeds, the map has the same value.
         if (!ok) continue;
         ASSERT_FALSE(std::isnan(d)) << "model " << mi << " cell " << i << "," << j;
-        const double ex = m.fx() * (xn.x() - (px.x() - m.cx()) / m.fx()), ey = m.fy() * (xn.y() - (px.y() - m.cy()) / m.fy());
+        const double ex = m.fx() * (xn.x() - (px.x() - m.cx()) / m.fx()),
+                     ey = m.fy() * (xn.y() - (px.y() - m.cy()) / m.fy());
         EXPECT_NEAR(d, std::sqrt(ex * ex + ey * ey), 1e-3 + 1e-5 * d);
       }
     }
@@ -207,20 +241,23 @@ TEST(CameraModel, ReadsTheC525ReferenceFile) {
 }
 
 TEST(CameraModel, WriteReadRoundTripYamlAndJson) {
-  const CameraModel m = strong_model();
-  for (const std::string ext : {".yml", ".json"}) {
-    const std::string path = testing::TempDir() + "/posecal_model" + ext;
-    CalibrationFileExtras extras;
-    extras.nr_of_frames = 9;
-    extras.avg_reprojection_error = 0.25;
-    extras.param_std = std::vector<double>(9, 0.5);
-    write_camera_model(path, m, extras);
-    const CameraModel r = read_camera_model(path);
-    for (int i = 0; i < 9; ++i) EXPECT_DOUBLE_EQ(r.params()[i], m.params()[i]) << ext;
-    cv::FileStorage fs(path, cv::FileStorage::READ);
-    EXPECT_EQ(static_cast<int>(fs["nr_of_frames"]), 9);
-    EXPECT_DOUBLE_EQ(static_cast<double>(fs["avg_reprojection_error"]), 0.25);
-    std::remove(path.c_str());
+  for (const CameraModel& m : sample_models()) {
+    for (const std::string ext : {".yml", ".json"}) {
+      const std::string path = testing::TempDir() + "/posecal_model" + ext;
+      CalibrationFileExtras extras;
+      extras.nr_of_frames = 9;
+      extras.avg_reprojection_error = 0.25;
+      extras.param_std = std::vector<double>(m.num_params(), 0.5);
+      write_camera_model(path, m, extras);
+      const CameraModel r = read_camera_model(path);
+      ASSERT_EQ(r.lens_model(), m.lens_model()) << ext;
+      for (int i = 0; i < m.num_params(); ++i)
+        EXPECT_DOUBLE_EQ(r.params()[i], m.params()[i]) << ext;
+      cv::FileStorage fs(path, cv::FileStorage::READ);
+      EXPECT_EQ(static_cast<int>(fs["nr_of_frames"]), 9);
+      EXPECT_DOUBLE_EQ(static_cast<double>(fs["avg_reprojection_error"]), 0.25);
+      std::remove(path.c_str());
+    }
   }
 }
 

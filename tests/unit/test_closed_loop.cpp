@@ -11,7 +11,7 @@
 
 #include "calib/metrics.hpp"
 #include "session/session.hpp"
-#include "sim/simulation.hpp"
+#include "sim/sim_camera.hpp"
 #include "lens/reference_models.hpp"
 
 using namespace posecal;

@@ -6,7 +6,7 @@
 #include "select/engine.hpp"
 #include "common/error.hpp"
 #include "session/session.hpp"
-#include "sim/simulation.hpp"
+#include "sim/sim_camera.hpp"
 #include "board/views.hpp"
 #include "lens/reference_models.hpp"
 #include "calib/information.hpp"

@@ -1,17 +1,16 @@
-// Closed-loop simulation: a simulated operator (person or robot) moves the synthetic board to
-// the engine's targets with realistic error; the sim:// camera renders what the camera sees.
+// The simulated operator of the closed loop: a person who aligns the board with the overlay (drawn
+// with the engine's current, imperfect intrinsics) or a robot that goes to the 6-DoF target, each
+// with realistic error; and cameras sampled around a reference (paper §5.1).
 #pragma once
 
 #include <cstdint>
 #include <map>
-#include <memory>
 #include <random>
 #include <string>
 
-#include "device/camera.hpp"
-#include "device/sources.hpp"
-#include "select/engine.hpp"
-#include "sim/synthetic.hpp"
+#include "board/board.hpp"
+#include "device/guidance.hpp"
+#include "lens/camera_model.hpp"
 
 namespace posecal {
 
@@ -70,47 +69,5 @@ class SimulatedOperator {
 // A camera sampled around a reference: every parameter ~ N(C, (rel_std * C)^2) (paper §5.1,
 // eq. 9). Resampled until the model is valid and has no fold-over inside the image.
 CameraModel sample_camera(const CameraModel& reference, double rel_std, uint64_t seed);
-
-struct SimCameraOptions {
-  CameraModel truth;          // ground truth camera
-  BoardSpec board;
-  RenderOptions render;       // noise, blur, seed...
-  OperatorOptions op;
-  uint64_t seed = 1;
-};
-
-// Parses sim://?model=FILE&seed=N&operator=person|robot&noise=G&blur=PX into options (every
-// parameter optional; default camera sampled around the C525 with 10% std).
-SimCameraOptions sim_options_from_uri(const Uri& uri, const BoardSpec& board);
-
-class SimCamera;
-std::shared_ptr<CameraBackend> make_sim_backend(const BoardSpec& board = {});
-std::unique_ptr<Camera> make_sim_camera(const SimCameraOptions& options);
-// The simulated camera behind a Camera (nullptr if it is not one).
-SimCamera* as_sim_camera(Camera* camera);
-
-class SimCamera : public SimpleCamera {
- public:
-  virtual const CameraModel& truth() const = 0;
-  virtual SyntheticCamera& synthetic() = 0;
-  virtual const SimulatedOperator& op() const = 0;
-  virtual const SimCameraOptions& sim_options() const = 0;
-
- protected:
-  using SimpleCamera::SimpleCamera;
-};
-
-// Evaluation of a synthetic calibration: eps_test on the fixed 50-frame test set rendered by
-// the same synthetic camera (same noise), eps_gt against the ground truth.
-struct SimEvaluation {
-  double eps_test = -1;
-  int test_frames = 0;
-  double eps_gt = -1;
-};
-// Renders the fixed test set (test_set_views) with `camera` and detects it; frames where less
-// than half the board is detected are left out.
-std::vector<Observation> render_test_set(SyntheticCamera& camera, int count = 50);
-SimEvaluation evaluate_synthetic(const CameraModel& estimate, const CameraModel& truth,
-                                 const std::vector<Observation>& test_set);
 
 }  // namespace posecal

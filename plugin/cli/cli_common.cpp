@@ -1,0 +1,168 @@
+#include "cli_common.hpp"
+
+#include <cmath>
+#include <cstdlib>
+#include <mutex>
+
+namespace posecal::cli {
+
+namespace {
+
+// stdout and stderr carry lines from several threads (station) and from the event callback.
+std::mutex g_out_mutex;
+
+}  // namespace
+
+void check(posecal_status s) {
+  if (s != POSECAL_OK) throw Failure{s, posecal_last_error()};
+}
+
+std::string fetch_json(const std::function<posecal_status(char*, size_t*)>& call) {
+  // A first guess of 64 KiB saves the second call almost always.
+  std::string buf(65536, '\0');
+  size_t size = buf.size();
+  posecal_status s = call(buf.data(), &size);
+  if (s == POSECAL_E_BUFFER_TOO_SMALL) {
+    buf.assign(size, '\0');
+    s = call(buf.data(), &size);
+  }
+  check(s);
+  buf.resize(size - 1);
+  return buf;
+}
+
+Json fetch_status(posecal_session* s) {
+  return Json::parse(
+      fetch_json([&](char* b, size_t* n) { return posecal_session_status(s, b, n); }));
+}
+
+Json fetch_result(posecal_session* s) {
+  return Json::parse(
+      fetch_json([&](char* b, size_t* n) { return posecal_session_result(s, b, n); }));
+}
+
+bool has_result(posecal_session* s) {
+  size_t probe = 0;
+  return posecal_session_result(s, nullptr, &probe) != POSECAL_E_STATE;
+}
+
+Context::Context() { check(posecal_context_create(nullptr, &ctx_)); }
+
+Context::~Context() { posecal_context_destroy(ctx_); }
+
+Session::Session(posecal_context* ctx, const std::string& uri, const Json& config) {
+  check(posecal_session_open(ctx, uri.c_str(), config.dump().c_str(), &s_));
+}
+
+Session::~Session() { posecal_session_close(s_); }
+
+void write_line(FILE* out, const Json& j) {
+  std::lock_guard<std::mutex> lock(g_out_mutex);
+  std::fprintf(out, "%s\n", j.dump().c_str());
+  std::fflush(out);
+}
+
+void print_error_line(const std::string& text) {
+  std::lock_guard<std::mutex> lock(g_out_mutex);
+  std::fprintf(stderr, "%s\n", text.c_str());
+}
+
+void print_event_line(void* user, const char* kind, const char* payload) {
+  const auto* sink = static_cast<const EventSink*>(user);
+  Json j = Json::parse(payload, nullptr, false);
+  if (j.is_discarded()) j = Json{{"payload", payload}};
+  j["event"] = kind;
+  if (!sink->camera.empty()) j["camera"] = sink->camera;
+  write_line(sink->out, j);
+}
+
+Json summary(const Json& result, double wall_ms) {
+  Json j;
+  j["converged"] = result.value("converged", false);
+  j["state"] = result.value("state", "");
+  j["keyframes"] = result.value("keyframes", 0);
+  j["frames_processed"] = result.value("frames_processed", 0);
+  const Json order = result.value("covariance_order", Json::array());
+  for (const auto& name : order) {
+    const std::string n = name.get<std::string>();
+    j[n] = result.value(n, Json());
+  }
+  j["covariance_order"] = order;
+  j["std"] = result.value("std", Json());
+  j["eps_res"] = result.value("eps_res", Json());
+  for (const char* k : {"eps_test", "eps_gt", "ground_truth", "operator_attempts", "failure"}) {
+    if (result.contains(k)) j[k] = result[k];
+  }
+  j["camera"] = result.value("camera", Json());
+  j["wall_ms"] = wall_ms;
+  return j;
+}
+
+double num_or(const Json& j, const std::string& key, double def) {
+  return j.is_object() && j.contains(key) && j[key].is_number() ? j[key].get<double>() : def;
+}
+
+double ms_since(Clock::time_point t0) {
+  return std::chrono::duration<double, std::milli>(Clock::now() - t0).count();
+}
+
+std::string trim(const std::string& s) {
+  const size_t a = s.find_first_not_of(" \t");
+  if (a == std::string::npos) return "";
+  return s.substr(a, s.find_last_not_of(" \t") - a + 1);
+}
+
+std::vector<std::string> split_list(const std::string& text) {
+  std::vector<std::string> out;
+  size_t start = 0;
+  while (start <= text.size()) {
+    size_t end = text.find(',', start);
+    if (end == std::string::npos) end = text.size();
+    const std::string item = trim(text.substr(start, end - start));
+    if (!item.empty()) out.push_back(item);
+    start = end + 1;
+  }
+  return out;
+}
+
+const CLI::Validator& non_empty() {
+  static const CLI::Validator v(
+      [](std::string& s) { return s.empty() ? std::string("must not be empty") : std::string(); },
+      "");
+  return v;
+}
+
+std::string number_text(double v) {
+  char buf[32];
+  if (std::fabs(v) < 1e15 && v == std::trunc(v)) {
+    std::snprintf(buf, sizeof buf, "%lld", static_cast<long long>(v));
+  } else {
+    std::snprintf(buf, sizeof buf, "%g", v);
+  }
+  return buf;
+}
+
+CLI::Validator in_range(double lo, double hi) {
+  const std::string range = "[" + number_text(lo) + ", " + number_text(hi) + "]";
+  return CLI::Validator(
+      [lo, hi, range](std::string& s) {
+        char* end = nullptr;
+        const double v = std::strtod(s.c_str(), &end);
+        if (s.empty() || *end != '\0' || std::isnan(v)) return "'" + s + "' is not a number";
+        if (v < lo || v > hi) return s + " is outside " + range;
+        return std::string();
+      },
+      "in " + range);
+}
+
+std::string target_spec_help() {
+  return "SPEC: charuco:COLSxROWS:SQUARE_M:MARKER_M:DICT (default "
+         "charuco:9x6:0.028:0.0182:DICT_4X4_50)\n"
+         "      chessboard:COLSxROWS:SQUARE_M (inner corners), e.g. chessboard:9x6:0.025";
+}
+
+void add_json_flag(CLI::App* cmd, bool* json, const std::string& what) {
+  cmd->add_flag("--json", *json, what);
+}
+
+}  // namespace posecal::cli

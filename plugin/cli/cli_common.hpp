@@ -1,0 +1,114 @@
+// What every posecal command shares: exit codes and errors, ABI handles and the JSON size
+// protocol, event and line output, the calibration summary, and small helpers.
+#pragma once
+
+#include <CLI/CLI.hpp>
+#include <chrono>
+#include <cstddef>
+#include <cstdio>
+#include <functional>
+#include <nlohmann/json.hpp>
+#include <string>
+#include <vector>
+
+#include "posecal.h"
+
+namespace posecal::cli {
+
+using Json = nlohmann::json;
+using Clock = std::chrono::steady_clock;
+
+enum Exit { kOk = 0, kUsage = 1, kFailure = 2, kNotConverged = 3 };
+
+// A usage error found after parsing (e.g. two options that exclude each other): exit code 1.
+struct UsageError {
+  std::string message;
+};
+
+// A failed ABI call (or a failure of the command itself): the status and the message.
+struct Failure {
+  posecal_status status;
+  std::string message;
+};
+
+// Throws the ABI's last error for a failed call.
+void check(posecal_status s);
+
+// Calls a JSON-returning ABI function with the size protocol.
+std::string fetch_json(const std::function<posecal_status(char*, size_t*)>& call);
+
+Json fetch_status(posecal_session* s);
+Json fetch_result(posecal_session* s);
+// True once the session has a calibration (two keyframes or more).
+bool has_result(posecal_session* s);
+
+class Context {
+ public:
+  Context();
+  ~Context();
+  Context(const Context&) = delete;
+  Context& operator=(const Context&) = delete;
+  posecal_context* get() const { return ctx_; }
+
+ private:
+  posecal_context* ctx_ = nullptr;
+};
+
+class Session {
+ public:
+  // Opens `uri` with the session config `config` (a JSON object).
+  Session(posecal_context* ctx, const std::string& uri, const Json& config);
+  ~Session();
+  Session(const Session&) = delete;
+  Session& operator=(const Session&) = delete;
+  posecal_session* get() const { return s_; }
+
+ private:
+  posecal_session* s_ = nullptr;
+};
+
+// Writes one JSON line and flushes. Event lines, protocol lines and the station's messages
+// share stdout/stderr across threads: one line at a time.
+void write_line(FILE* out, const Json& j);
+// Prints a message line to stderr under the same lock as write_line.
+void print_error_line(const std::string& text);
+
+// Where a session's events go: one JSON line per event.
+struct EventSink {
+  FILE* out = stdout;
+  std::string camera;  // added to each line when set (station)
+};
+
+// posecal_event_fn for an EventSink.
+void print_event_line(void* user, const char* kind, const char* payload);
+
+// The summary every calibration command prints with --json; the intrinsics are the result's
+// covariance_order (whatever the lens model's parameters are).
+Json summary(const Json& result, double wall_ms);
+
+// j[key] if it is a number, else `def`.
+double num_or(const Json& j, const std::string& key, double def);
+double ms_since(Clock::time_point t0);
+std::string trim(const std::string& s);
+// The comma-separated items of `text`, trimmed; empty items are dropped.
+std::vector<std::string> split_list(const std::string& text);
+
+// ---- CLI11 helpers ----
+
+// Rejects an empty value (e.g. --camera ""), as the previous parser's "missing --camera" did.
+const CLI::Validator& non_empty();
+// A number in [lo, hi], inclusive. (CLI::Range prints its limits with std::to_string:
+// "0.000001 to 0.999000" for the table's [1e-6, 0.999].)
+CLI::Validator in_range(double lo, double hi);
+// A limit as a person writes it: 1000000, 0.999, 1e-06.
+std::string number_text(double v);
+// The help text of --target's SPEC (the footer of the commands that take a board).
+std::string target_spec_help();
+// Adds the --json flag every command has.
+void add_json_flag(CLI::App* cmd, bool* json, const std::string& what);
+
+// A subcommand's runner: registered before parsing, bound to the options it parsed into, called
+// after parsing succeeded.
+using Command = std::function<int()>;
+
+}  // namespace posecal::cli

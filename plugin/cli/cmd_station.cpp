@@ -1,0 +1,236 @@
+// posecal station: several cameras calibrated concurrently (one thread each); one result file
+// per camera named by its identity, and DIR/summary.json.
+#include <cctype>
+#include <filesystem>
+#include <memory>
+#include <mutex>
+#include <set>
+#include <thread>
+
+#include "commands.hpp"
+#include "session_flags.hpp"
+
+namespace posecal::cli {
+
+namespace {
+
+struct StationOptions {
+  std::string cameras, out_dir, format = "yml";
+  bool json = false, events = false;
+  int timeout_ms = 2000;
+  double max_seconds = 1800;
+  std::unique_ptr<SessionFlags> session;
+};
+
+struct StationJob {
+  std::string uri;
+  Json outcome;  // filled by the job's thread
+  int exit = kFailure;
+};
+
+// What the camera threads share: read-only but for the result file names, which are claimed
+// under the mutex.
+struct StationShared {
+  posecal_context* ctx = nullptr;
+  const StationOptions* options = nullptr;
+  Json config;  // the session config, built once before any thread starts
+  std::mutex names_mutex;
+  std::set<std::string> names;
+};
+
+// A camera id as a file name: letters, digits, '.', '_' and '-'; anything else becomes '_'.
+std::string sanitise_id(const std::string& id) {
+  std::string out;
+  for (unsigned char ch : id) {
+    out.push_back(std::isalnum(ch) || ch == '.' || ch == '_' || ch == '-' ? static_cast<char>(ch)
+                                                                          : '_');
+  }
+  while (!out.empty() && out.front() == '.') out.erase(out.begin());  // no hidden files
+  return out.empty() ? "camera" : out;
+}
+
+// The result file is named by the camera's identity; two cameras with one id get suffixes.
+std::string claim_file(StationShared* shared, const std::string& id) {
+  std::string name = sanitise_id(id);
+  {
+    std::lock_guard<std::mutex> lock(shared->names_mutex);
+    const std::string base = name;
+    for (int i = 2; shared->names.count(name); ++i) name = base + "-" + std::to_string(i);
+    shared->names.insert(name);
+  }
+  return shared->options->out_dir + "/" + name + "." + shared->options->format;
+}
+
+void step_until_done(posecal_session* s, const StationOptions& o, const std::string& uri,
+                     Clock::time_point t0) {
+  int failures = 0;
+  while (ms_since(t0) < o.max_seconds * 1000) {
+    const posecal_status st = posecal_session_step(s, o.timeout_ms);
+    if (st == POSECAL_E_STATE || st == POSECAL_E_NOT_FOUND) break;
+    if (st == POSECAL_E_TIMEOUT || st == POSECAL_E_DEVICE) {
+      if (++failures % 5 == 1)
+        print_error_line("posecal station: " + uri + ": " + posecal_last_error());
+      continue;
+    }
+    check(st);
+    failures = 0;
+  }
+}
+
+// Calibrates one camera into job->outcome; throws Failure.
+void calibrate_one(StationShared* shared, StationJob* job, Clock::time_point t0) {
+  const StationOptions& o = *shared->options;
+  Json& out = job->outcome;
+  Session s(shared->ctx, job->uri, shared->config);
+  const Json camera = fetch_status(s.get())["camera"];
+  out["camera"] = camera;
+  EventSink sink{stderr, job->uri};
+  if (o.events) check(posecal_session_set_callback(s.get(), print_event_line, &sink));
+  step_until_done(s.get(), o, job->uri, t0);
+  if (!has_result(s.get())) {
+    throw Failure{POSECAL_E_STATE, "no calibration: fewer than two keyframes were captured"};
+  }
+  const std::string file = claim_file(shared, camera.value("id", ""));
+  check(posecal_session_save(s.get(), file.c_str()));
+  const Json result = fetch_result(s.get());
+  out["converged"] = result.value("converged", false);
+  for (const char* k : {"state", "keyframes", "frames_processed", "eps_res"}) {
+    out[k] = result.value(k, Json());
+  }
+  out["eps_test"] = result.value("eps_test", Json());
+  out["eps_gt"] = result.value("eps_gt", Json());
+  out["file"] = file;
+  out["error"] = nullptr;
+  job->exit = out["converged"].get<bool>() ? kOk : kNotConverged;
+}
+
+// A camera's thread: its outcome, whatever happens (one failed camera does not end the others).
+void run_station_camera(StationShared* shared, StationJob* job) {
+  const auto t0 = Clock::now();
+  Json& out = job->outcome;
+  out["uri"] = job->uri;
+  try {
+    calibrate_one(shared, job, t0);
+  } catch (const Failure& f) {
+    out["converged"] = false;
+    out["error"] = f.message;
+    out["status"] = posecal_status_name(f.status);
+    job->exit = kFailure;
+  } catch (const std::exception& e) {
+    out["converged"] = false;
+    out["error"] = e.what();
+    job->exit = kFailure;
+  }
+  out["wall_ms"] = ms_since(t0);
+}
+
+void print_station_text(const Json& sum, const std::string& sum_path) {
+  for (const auto& o : sum["cameras"]) {
+    if (!o["error"].is_null()) {
+      std::printf("%-40s FAILED: %s\n", o["uri"].get<std::string>().c_str(),
+                  o["error"].get<std::string>().c_str());
+      continue;
+    }
+    char eps_test[64] = "";
+    if (o["eps_test"].is_number()) {
+      std::snprintf(eps_test, sizeof eps_test, ", eps_test %.3f px", o["eps_test"].get<double>());
+    }
+    std::printf(
+        "%-40s %s, %d keyframes, eps_res %.3f px%s -> %s\n", o["uri"].get<std::string>().c_str(),
+        o["converged"].get<bool>() ? "converged" : "NOT converged", o["keyframes"].get<int>(),
+        num_or(o, "eps_res", -1), eps_test, o["file"].get<std::string>().c_str());
+  }
+  std::printf("%d of %d cameras converged in %.1f s; summary in %s\n", sum["converged"].get<int>(),
+              sum["total"].get<int>(), sum["wall_ms"].get<double>() / 1000, sum_path.c_str());
+}
+
+// Runs every camera on its own thread; the summary of all of them.
+Json run_cameras(const StationOptions& o, const std::vector<std::string>& uris, int* exit) {
+  Context c;
+  StationShared shared;
+  shared.ctx = c.get();
+  shared.options = &o;
+  shared.config = o.session->config();
+  std::vector<StationJob> jobs(uris.size());
+  const auto t0 = Clock::now();
+  {
+    std::vector<std::thread> threads;
+    for (size_t i = 0; i < uris.size(); ++i) {
+      jobs[i].uri = uris[i];
+      threads.emplace_back(run_station_camera, &shared, &jobs[i]);
+    }
+    for (auto& t : threads) t.join();
+  }
+  Json cams = Json::array();
+  int converged = 0;
+  *exit = kOk;
+  for (const auto& j : jobs) {
+    cams.push_back(j.outcome);
+    if (j.exit == kOk) ++converged;
+    if (j.exit == kFailure) *exit = kFailure;  // a failed camera outweighs unconverged ones
+    if (j.exit == kNotConverged && *exit == kOk) *exit = kNotConverged;
+  }
+  return {{"cameras", cams},        {"total", jobs.size()},
+          {"converged", converged}, {"all_converged", converged == static_cast<int>(jobs.size())},
+          {"out_dir", o.out_dir},   {"wall_ms", ms_since(t0)}};
+}
+
+int run_station(const StationOptions& o) {
+  const std::vector<std::string> uris = split_list(o.cameras);
+  if (uris.empty()) throw UsageError{"--cameras needs at least one URI"};
+  std::error_code ec;
+  std::filesystem::create_directories(o.out_dir, ec);
+  if (ec || !std::filesystem::is_directory(o.out_dir)) {
+    throw Failure{POSECAL_E_IO, "cannot create directory '" + o.out_dir + "'" +
+                                    (ec ? ": " + ec.message() : std::string())};
+  }
+  int exit = kOk;
+  const Json sum = run_cameras(o, uris, &exit);
+  const std::string sum_path = o.out_dir + "/summary.json";
+  if (FILE* f = std::fopen(sum_path.c_str(), "w")) {
+    std::fprintf(f, "%s\n", sum.dump(2).c_str());
+    std::fclose(f);
+  } else {
+    std::fprintf(stderr, "posecal station: cannot write %s\n", sum_path.c_str());
+    exit = kFailure;
+  }
+  if (o.json) {
+    std::printf("%s\n", sum.dump().c_str());
+  } else {
+    print_station_text(sum, sum_path);
+  }
+  return exit;
+}
+
+}  // namespace
+
+Command add_station(CLI::App* app) {
+  auto o = std::make_shared<StationOptions>();
+  CLI::App* cmd =
+      app->add_subcommand("station", "calibrate several cameras concurrently (one thread each)");
+  cmd->footer("Writes DIR/<camera id>.<format> per camera and DIR/summary.json.\n" +
+              target_spec_help());
+  cmd->add_option("--cameras", o->cameras, "the cameras")
+      ->type_name("URI,URI,...")
+      ->required()
+      ->check(non_empty());
+  cmd->add_option("--out-dir", o->out_dir, "the folder of the results (created if needed)")
+      ->type_name("DIR")
+      ->required()
+      ->check(non_empty());
+  cmd->add_option("--format", o->format, "result file format (default: yml)")
+      ->check(CLI::IsMember({"yml", "yaml", "json"}));
+  cmd->add_option("--timeout-ms", o->timeout_ms,
+                  "wait for a frame at most this long (default: 2000)")
+      ->check(in_range(0, 600000));
+  cmd->add_option("--max-seconds", o->max_seconds,
+                  "give up on a camera after this long (default: 1800)")
+      ->check(CLI::NonNegativeNumber);
+  add_json_flag(cmd, &o->json, "print the summary as one JSON object");
+  cmd->add_flag("--events", o->events,
+                "print every session's events as JSON lines on stderr (with \"camera\")");
+  o->session = std::make_unique<SessionFlags>(cmd);
+  return [o] { return run_station(*o); };
+}
+
+}  // namespace posecal::cli
