@@ -33,7 +33,7 @@ static_assert(POSECAL_OK == 0 && POSECAL_E_INVALID_ARGUMENT == 1 && POSECAL_E_NO
 static_assert(POSECAL_PIXEL_MONO8 == 0 && POSECAL_PIXEL_BGR8 == 1 && POSECAL_PIXEL_RGB8 == 2,
               "posecal_pixel_format values are frozen");
 
-// The statuses are core's error codes one-to-one (posecal/error.hpp), so abi::status_of is a
+// The statuses are core's error codes one-to-one (common/error.hpp), so abi::status_of is a
 // table, not a policy.
 #include "common/error.hpp"
 static_assert(static_cast<int>(posecal::ErrorCode::kInvalidArgument) ==

@@ -1,4 +1,4 @@
-// Test support: the sim:// closed loop (core/src/simulation.cpp, SimCameraImpl) rebuilt around a
+// Test support: the sim:// closed loop (core/sim/sim_camera.cpp, SimCameraImpl) rebuilt around a
 // real camera backend. A SimulatedOperator guided by the engine moves the board, a
 // SyntheticCamera renders it, and a camera simulator that runs on its own clock (Aravis' GigE
 // Vision simulator thread, the UVC emulator's sensor) sends the rendering through the real
