@@ -249,30 +249,42 @@ Eigen::MatrixXd intrinsics_information(const CalibrationResult& result) {
   return C.ldlt().solve(Eigen::MatrixXd::Identity(m, m));
 }
 
+std::vector<int> free_intrinsics(const std::vector<bool>& fixed) {
+  std::vector<int> free_idx;
+  for (size_t i = 0; i < fixed.size(); ++i)
+    if (!fixed[i]) free_idx.push_back(static_cast<int>(i));
+  return free_idx;
+}
+
+bool ray_intrinsics_jacobian(const CameraModel& model, const std::vector<int>& free_idx, const Eigen::Vector2d& pixel,
+                             Eigen::Matrix<double, 2, Eigen::Dynamic>* Jf) {
+  Eigen::Vector2d xn, uv;
+  if (!model.unproject(pixel, &xn)) return false;
+  const int n = model.num_params();
+  Eigen::Matrix<double, 2, Eigen::Dynamic> J(2, n);
+  with_lens_model(model.lens_model(), [&](auto lm) {
+    Eigen::Matrix<double, 2, 3> Jc;
+    decltype(lm)::project_jacobians(model.params().data(), Eigen::Vector3d(xn.x(), xn.y(), 1.0), &uv.x(), &uv.y(), &Jc,
+                                    J.data());
+  });
+  Jf->resize(2, static_cast<Eigen::Index>(free_idx.size()));
+  for (size_t k = 0; k < free_idx.size(); ++k) Jf->col(static_cast<Eigen::Index>(k)) = J.col(free_idx[k]);
+  return true;
+}
+
 Eigen::MatrixXd projection_gram(const CameraModel& model, const std::vector<bool>& fixed, int cols, int rows) {
   const int n = model.num_params();
   if (static_cast<int>(fixed.size()) != n) throw Error(ErrorCode::kInvalidArgument, "projection_gram: fixed size");
   if (cols < 1 || rows < 1) throw Error(ErrorCode::kInvalidArgument, "projection_gram: grid must be >= 1x1");
-  std::vector<int> free_idx;
-  for (int i = 0; i < n; ++i)
-    if (!fixed[i]) free_idx.push_back(i);
+  const std::vector<int> free_idx = free_intrinsics(fixed);
   const int m = static_cast<int>(free_idx.size());
   Eigen::MatrixXd G = Eigen::MatrixXd::Zero(m, m);
-  Eigen::MatrixXd Jf(2, m);
+  Eigen::Matrix<double, 2, Eigen::Dynamic> Jf(2, m);
   int count = 0;
   for (int j = 0; j < rows; ++j) {
     for (int i = 0; i < cols; ++i) {
       const Eigen::Vector2d p((i + 0.5) * model.width() / cols - 0.5, (j + 0.5) * model.height() / rows - 0.5);
-      Eigen::Vector2d xn, uv;
-      Eigen::Matrix<double, 2, Eigen::Dynamic> J;
-      if (!model.unproject(p, &xn)) continue;
-      with_lens_model(model.lens_model(), [&](auto lm) {
-        Eigen::Matrix<double, 2, 3> Jc;
-        J.resize(2, n);
-        decltype(lm)::project_jacobians(model.params().data(), Eigen::Vector3d(xn.x(), xn.y(), 1.0), &uv.x(), &uv.y(),
-                                        &Jc, J.data());
-      });
-      for (int k = 0; k < m; ++k) Jf.col(k) = J.col(free_idx[k]);
+      if (!ray_intrinsics_jacobian(model, free_idx, p, &Jf)) continue;
       G.noalias() += Jf.transpose() * Jf;
       ++count;
     }

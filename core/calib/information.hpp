@@ -49,6 +49,15 @@ void corner_quadrature(const std::vector<cv::Point3d>& corners, int nodes_x, int
 // Marginal information of the free intrinsics from a result: inverse of their covariance block.
 Eigen::MatrixXd intrinsics_information(const CalibrationResult& result);
 
+// The indices of the intrinsics that are not fixed, in order.
+std::vector<int> free_intrinsics(const std::vector<bool>& fixed);
+
+// d(pixel)/d(free intrinsics) at `pixel`, the ray through it (unprojected with `model`) held
+// fixed while the intrinsics move: how an error in the intrinsics moves that ray's projection.
+// 2 x free_idx.size(); false if the pixel has no preimage.
+bool ray_intrinsics_jacobian(const CameraModel& model, const std::vector<int>& free_idx, const Eigen::Vector2d& pixel,
+                             Eigen::Matrix<double, 2, Eigen::Dynamic>* Jf);
+
 // Mean of J^T J over a cols x rows grid of pixel centres, J = d(pixel)/d(free intrinsics) of the
 // ray through each pixel (free parameters in the order of `fixed`'s false entries). For a
 // covariance Sigma of the free intrinsics, trace(G Sigma) is the expected squared projection

@@ -85,4 +85,44 @@ bool CalibrationEngine::Impl::converges_prospectively(int param, double predicte
   return true;
 }
 
+namespace {
+
+std::string px_text(double px) {
+  char buf[32];
+  std::snprintf(buf, sizeof buf, "%.3f px", px);
+  return buf;
+}
+
+}  // namespace
+
+void CalibrationEngine::Impl::continue_towards_accuracy() {
+  const double goal = *opt.accuracy_px;
+  if (expected->rms_px <= goal) {  // false for NaN
+    const std::string why = "expected error " + px_text(expected->rms_px) + " <= accuracy_px " + px_text(goal);
+    for (int i = 0; i < estimate.num_params(); ++i)
+      if (!param_converged[i]) mark_converged(i, why);
+    target.reset();
+    target_param = -1;
+    set_state(EngineState::kConverged, why);
+    return;
+  }
+  if (static_cast<int>(keyframes.size()) >= opt.max_keyframes) return fail(accuracy_shortfall());
+  set_state(EngineState::kRefining);
+  choose_accuracy_target();
+}
+
+std::string CalibrationEngine::Impl::accuracy_shortfall() const {
+  std::string why = "keyframe cap (" + std::to_string(opt.max_keyframes) + ") reached with an expected error of " +
+                    px_text(expected->rms_px) + ", above accuracy_px " + px_text(*opt.accuracy_px);
+  if (expected->limiting_param >= 0) {
+    why += "; " + estimate.param_names()[expected->limiting_param] +
+           " holds it back (knowing it exactly would remove " + percent_text(expected->limiting_share) +
+           " of the squared error)";
+  }
+  if (!result->solver_converged()) {
+    why += "; the last bundle adjustment stopped at its iteration limit (" + result->termination_message + ")";
+  }
+  return why;
+}
+
 }  // namespace posecal

@@ -53,6 +53,8 @@ bool EngineOptions::is_valid(std::string* error) const {
 #define POSECAL_RANGE_Number(key, member, lo, hi) \
   if (!(member >= lo && member <= hi)) return fail(#key " must be in [" #lo ", " #hi "]");
 #define POSECAL_RANGE_Integer(key, member, lo, hi) POSECAL_RANGE_Number(key, member, lo, hi)
+#define POSECAL_RANGE_OptionalNumber(key, member, lo, hi) \
+  if (member && !(*member >= lo && *member <= hi)) return fail(#key " must be in [" #lo ", " #hi "]");
 #define POSECAL_RANGE_Bool(key, member, lo, hi)
 #define POSECAL_RANGE_Choice(key, member, lo, hi)
 #define POSECAL_RANGE_Text(key, member, lo, hi)
@@ -285,6 +287,7 @@ void CalibrationEngine::Impl::capture(const Detection& det) {
     return;
   }
   if (!recalibrate()) return;  // same target again
+  if (opt.accuracy_px) return continue_towards_accuracy();
   if (!all_converged() && static_cast<int>(keyframes.size()) < opt.max_keyframes) {
     set_state(EngineState::kRefining);
     choose_refinement_target();  // may converge parameters prospectively
@@ -330,8 +333,9 @@ bool CalibrationEngine::Impl::recalibrate() {
   const std::optional<CalibrationResult> prev = result;
   result = now;
   estimate = now.model;
+  expected = posecal::expected_error(now);
   EngineEvent ke{EngineEvent::Kind::kCalibrated};
-  ke.message = "rms " + std::to_string(now.rms_px) + " px";
+  ke.message = "rms " + std::to_string(now.rms_px) + " px, expected error " + std::to_string(expected->rms_px) + " px";
   emit(ke);
   if (prev && tgt >= 0) update_convergence(*prev, now, tgt);
   for (int i = 0; i < estimate.num_params(); ++i)
@@ -381,6 +385,9 @@ const std::optional<TargetPose>& CalibrationEngine::target() const { return impl
 int CalibrationEngine::target_parameter() const { return impl_->target_param; }
 const CameraModel& CalibrationEngine::estimate() const { return impl_->estimate; }
 const CalibrationResult* CalibrationEngine::result() const { return impl_->result ? &*impl_->result : nullptr; }
+const ExpectedError* CalibrationEngine::expected_error() const {
+  return impl_->expected ? &*impl_->expected : nullptr;
+}
 const std::vector<Observation>& CalibrationEngine::keyframe_observations() const { return impl_->keyframes; }
 const FrameReport& CalibrationEngine::last_report() const { return impl_->last; }
 const Board& CalibrationEngine::board() const { return impl_->board; }

@@ -17,6 +17,7 @@
 #include <vector>
 
 #include "calib/calibration.hpp"
+#include "calib/expected_error.hpp"
 #include "device/camera.hpp"
 #include "select/pose_rules.hpp"
 #include "board/board.hpp"
@@ -86,6 +87,10 @@ struct EngineOptions {
   // prospectively (needs prospective_convergence), i.e. by what the best pose the rules can
   // generate would add, not by what an imperfectly reached pose did add.
   bool measured_convergence = true;
+  // The stop rule in pixels: converged when the expected projection error (expected_error(),
+  // at the measured noise) is at most this; the targets then go to the intrinsic that holds it
+  // back and the ratio test stops nothing. Unset: the ratio test (paper §4.1).
+  std::optional<double> accuracy_px;
   PoseGenOptions posegen;
   CalibrationOptions calibration;
   DetectorOptions detector;
@@ -186,6 +191,8 @@ class CalibrationEngine {
   const CameraModel& estimate() const;
   // The last full calibration (nullptr before the second keyframe).
   const CalibrationResult* result() const;
+  // Its expected projection error (calib/expected_error.hpp; nullptr before the second keyframe).
+  const ExpectedError* expected_error() const;
   std::vector<ParameterStatus> parameters() const;
   const std::vector<Observation>& keyframe_observations() const;
   const FrameReport& last_report() const;

@@ -13,6 +13,7 @@
 #include <string>
 #include <vector>
 
+#include "calib/expected_error.hpp"
 #include "select/engine.hpp"
 #include "select/view_candidates.hpp"
 
@@ -38,6 +39,7 @@ struct CalibrationEngine::Impl {
   std::vector<Observation> keyframes;
   std::vector<int> keyframe_target;  // parameter each keyframe was captured for (-1: init)
   std::optional<CalibrationResult> result;
+  std::optional<ExpectedError> expected;  // of `result`
   Eigen::MatrixXd information;  // marginal information of the free intrinsics (scoring)
   Eigen::MatrixXd gram;         // projection_gram() of the estimate (projection scoring)
   // EngineOptions::view_candidates: the pool for the next choice, drawn frame by frame, and the
@@ -91,9 +93,24 @@ struct CalibrationEngine::Impl {
   // The prospective test: true (and the parameter converged) if even the pose about to be requested
   // would reduce its variance by less than the threshold.
   bool converges_prospectively(int param, double predicted_variance);
+  // With accuracy_px, after each calibration: converged, failed at the keyframe cap, or the next
+  // target for the intrinsic that holds the expected error back.
+  void continue_towards_accuracy();
+  std::string accuracy_shortfall() const;  // why the cap ended an accuracy_px session
 
   // --- target_choice.cpp ---
   void choose_refinement_target();
+  void choose_accuracy_target();
+  // The best candidate for `param`: rule candidates and, if `views`, the views' shortlist,
+  // compared by the candidate score if `scoring` (else the first rule candidate).
+  struct CandidatePick {
+    std::vector<TargetPose> rules;
+    std::vector<ViewCandidates::Exact> shortlisted;
+    size_t pick = 0;  // < rules.size(): a rule candidate, else rules.size() + shortlist position
+    double variance = std::numeric_limits<double>::infinity();  // of `param` after it
+  };
+  CandidatePick best_candidate(int param, ViewCandidates* views, bool scoring);
+  void set_picked_target(const CandidatePick& p, int param);
   int max_iod_parameter() const;
   size_t pick_candidate(int param, const std::vector<TargetPose>& cands, ViewCandidates* views,
                         std::vector<ViewCandidates::Exact>* shortlisted, double* pick_var) const;

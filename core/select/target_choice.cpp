@@ -37,26 +37,45 @@ void CalibrationEngine::Impl::choose_refinement_target() {
   while (true) {
     const int best = max_iod_parameter();
     if (best < 0) return;
-    const std::vector<TargetPose> cands = posegen.candidates(best, estimate, opt.pose_candidates);
-    if (cands.empty()) throw Error(ErrorCode::kInternal, "pose generation produced no candidate");
-    const size_t n_rule = cands.size();
-    size_t pick = 0;
     // Predicted variance of `best` after the candidate that will be captured: the prospective
     // test asks whether the keyframe the engine is about to request would help it.
-    double pick_var = std::numeric_limits<double>::infinity();
-    std::vector<ViewCandidates::Exact> shortlisted;
-    if (scoring) pick = pick_candidate(best, cands, views ? &*views : nullptr, &shortlisted, &pick_var);
-    if (opt.prospective_convergence && converges_prospectively(best, pick_var)) {
+    const CandidatePick p = best_candidate(best, views ? &*views : nullptr, scoring);
+    if (opt.prospective_convergence && converges_prospectively(best, p.variance)) {
       if (all_converged()) return;
       continue;
     }
-    if (pick < n_rule) {
-      posegen.commit(cands[pick]);
-      set_target(cands[pick], best);
-    } else {
-      set_target(*shortlisted[pick - n_rule].target, best);  // a view uses no sequence element or region
-    }
+    set_picked_target(p, best);
     return;
+  }
+}
+
+// With accuracy_px: the next target is for the intrinsic that holds the expected error back
+// (ExpectedError::limiting_param), the candidate the one that lowers the predicted error most
+// (or the parameter's variance, by candidate_score). No parameter converges by the ratio test.
+void CalibrationEngine::Impl::choose_accuracy_target() {
+  prepare_scoring();
+  std::optional<ViewCandidates> views;
+  if (opt.view_candidates > 0) views.emplace(view_candidates());
+  const int param = expected && expected->limiting_param >= 0 ? expected->limiting_param : max_iod_parameter();
+  if (param < 0) throw Error(ErrorCode::kInternal, "accuracy target: no free intrinsic");
+  set_picked_target(best_candidate(param, views ? &*views : nullptr, true), param);
+}
+
+CalibrationEngine::Impl::CandidatePick CalibrationEngine::Impl::best_candidate(int param, ViewCandidates* views,
+                                                                             bool scoring) {
+  CandidatePick p;
+  p.rules = posegen.candidates(param, estimate, opt.pose_candidates);
+  if (p.rules.empty()) throw Error(ErrorCode::kInternal, "pose generation produced no candidate");
+  if (scoring) p.pick = pick_candidate(param, p.rules, views, &p.shortlisted, &p.variance);
+  return p;
+}
+
+void CalibrationEngine::Impl::set_picked_target(const CandidatePick& p, int param) {
+  if (p.pick < p.rules.size()) {
+    posegen.commit(p.rules[p.pick]);
+    set_target(p.rules[p.pick], param);
+  } else {
+    set_target(*p.shortlisted[p.pick - p.rules.size()].target, param);  // a view uses no sequence element or region
   }
 }
 

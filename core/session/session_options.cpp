@@ -58,6 +58,20 @@ void set_Number(const char* key, double lo, double hi, const char*, double& m, c
 }
 SessionKeyValue get_Number(const char*, double m) { return m; }
 
+void set_OptionalNumber(const char* key, double lo, double hi, const char* choices, std::optional<double>& m,
+                        const SessionKeyValue& v) {
+  if (std::holds_alternative<std::monostate>(v)) {
+    m.reset();
+    return;
+  }
+  double x = 0;
+  set_Number(key, lo, hi, choices, x, v);
+  m = x;
+}
+SessionKeyValue get_OptionalNumber(const char*, const std::optional<double>& m) {
+  return m ? SessionKeyValue(*m) : SessionKeyValue(std::monostate{});
+}
+
 void set_Integer(const char* key, double lo, double hi, const char*, int& m, const SessionKeyValue& v) {
   const long long x = value_as<long long>(key, v, "an integer in " + range_text(lo, hi));
   if (!(static_cast<double>(x) >= lo && static_cast<double>(x) <= hi)) bad(key, "an integer in " + range_text(lo, hi));

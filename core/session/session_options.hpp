@@ -3,6 +3,7 @@
 // CLI's flags and the documentation come from one table.
 #pragma once
 
+#include <optional>
 #include <string>
 #include <variant>
 #include <vector>
@@ -17,12 +18,12 @@ struct SessionOptions {
   bool is_valid(std::string* error) const { return engine.is_valid(error); }
 };
 
-enum class SessionKeyKind { kNumber, kInteger, kBool, kChoice, kText, kTextList };
+enum class SessionKeyKind { kNumber, kInteger, kOptionalNumber, kBool, kChoice, kText, kTextList };
 
 struct SessionKeyInfo {
   const char* key;
   SessionKeyKind kind;
-  double lo, hi;             // kNumber, kInteger: the inclusive range
+  double lo, hi;             // kNumber, kInteger, kOptionalNumber: the inclusive range
   const char* choices;       // kChoice: "a|b|..."
   const char* default_text;  // as the JSON value is written (kChoice: the name)
   const char* cli_alias;     // an older CLI flag name, "" if none ("!name": sets a Bool false)
@@ -33,9 +34,10 @@ const std::vector<SessionKeyInfo>& session_keys();
 // The key's description; nullptr for an unknown key.
 const SessionKeyInfo* find_session_key(const std::string& key);
 
-// A key's value: kNumber double, kInteger long long, kBool bool, kChoice and kText string,
-// kTextList vector of strings.
-using SessionKeyValue = std::variant<double, long long, bool, std::string, std::vector<std::string>>;
+// A key's value: kNumber double, kInteger long long, kOptionalNumber double or std::monostate
+// (unset), kBool bool, kChoice and kText string, kTextList vector of strings.
+using SessionKeyValue =
+    std::variant<double, long long, bool, std::string, std::vector<std::string>, std::monostate>;
 
 // Sets the key. Throws Error(kInvalidArgument) naming the key for an unknown key, a value of the
 // wrong kind, out of range, not one of the choices, or a board spec that does not parse.

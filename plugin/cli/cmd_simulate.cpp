@@ -1,6 +1,7 @@
 // posecal simulate: the full closed loop on the built-in simulated camera (sim://).
 #include <cmath>
 #include <memory>
+#include <vector>
 
 #include "commands.hpp"
 #include "common/percent_encoding.hpp"
@@ -28,6 +29,22 @@ std::string sim_uri(const SimulateOptions& o) {
   return uri;
 }
 
+// The expected-error map at cols x rows points, edge to edge (posecal.h); NaN as null.
+Json expected_error_map(posecal_session* s, int cols, int rows) {
+  std::vector<float> values(static_cast<size_t>(cols) * rows);
+  check(posecal_session_expected_error_map(s, values.data(), cols, rows, 0));
+  Json px = Json::array();
+  for (int j = 0; j < rows; ++j) {
+    Json row = Json::array();
+    for (int i = 0; i < cols; ++i) {
+      const float v = values[static_cast<size_t>(j) * cols + i];
+      row.push_back(std::isfinite(v) ? Json(v) : Json(nullptr));
+    }
+    px.push_back(row);
+  }
+  return Json{{"cols", cols}, {"rows", rows}, {"px", px}};
+}
+
 void print_text_summary(const SimulateOptions& o, const Json& j, double wall_ms) {
   std::printf(
       "%s after %d keyframes (%d frames, %.1f s); eps_res %.3f px, eps_test %.3f px, eps_gt "
@@ -35,6 +52,10 @@ void print_text_summary(const SimulateOptions& o, const Json& j, double wall_ms)
       j["converged"].get<bool>() ? "converged" : "NOT converged", j["keyframes"].get<int>(),
       j["frames_processed"].get<int>(), wall_ms / 1000.0, num_or(j, "eps_res", -1),
       num_or(j, "eps_test", -1), num_or(j, "eps_gt", -1));
+  if (j["expected_error_px"].is_number()) {
+    std::printf("  expected error %.3f px (the calibration's own prediction of eps_gt's RMS)\n",
+                j["expected_error_px"].get<double>());
+  }
   const Json none = Json::object();
   const Json& truth = j.contains("ground_truth") ? j["ground_truth"] : none;
   for (const auto& name : j["covariance_order"]) {
@@ -61,7 +82,8 @@ int run_simulate(const SimulateOptions& o) {
     throw Failure{POSECAL_E_STATE, "no calibration: fewer than two keyframes"};
   }
   if (!o.out.empty()) check(posecal_session_save(s.get(), o.out.c_str()));
-  const Json j = summary(fetch_result(s.get()), wall_ms);
+  Json j = summary(fetch_result(s.get()), wall_ms);
+  if (o.json) j["expected_error_map"] = expected_error_map(s.get(), 16, 9);
   if (o.json) {
     std::printf("%s\n", j.dump().c_str());
   } else {

@@ -6,12 +6,12 @@ namespace posecal::cli {
 
 namespace {
 
-enum class KeyKind { kNumber, kInteger, kBool, kChoice, kText, kTextList };
+enum class KeyKind { kNumber, kInteger, kOptionalNumber, kBool, kChoice, kText, kTextList };
 
 struct KeyInfo {
   const char* key;
   KeyKind kind;
-  double lo, hi;        // Number, Integer: inclusive range
+  double lo, hi;        // Number, Integer, OptionalNumber: inclusive range
   const char* choices;  // Choice: '|'-separated
   const char* default_text;
   const char* alias;  // "" none; "!name": a flag that sets a Bool key to false
@@ -97,6 +97,7 @@ void SessionFlags::Flag::add_to(CLI::App* cmd) {
   const std::string doc = help_text(k);
   switch (k.kind) {
     case KeyKind::kNumber:
+    case KeyKind::kOptionalNumber:  // unset unless given
       option = cmd->add_option(names, number, doc)->check(in_range(k.lo, k.hi));
       break;
     case KeyKind::kInteger:
@@ -132,6 +133,7 @@ Json SessionFlags::Flag::value() const {
   if (negation && negation->count() > 0) return !negated;
   switch (key->kind) {
     case KeyKind::kNumber:
+    case KeyKind::kOptionalNumber:
       return number;
     case KeyKind::kInteger:
       return integer;

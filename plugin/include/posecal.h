@@ -212,7 +212,11 @@ typedef struct posecal_image {
  *   "view_candidates" (0; n > 0: also score n random views of the whole board and capture the
  *   best-scored pose, view or rule; docs/pose-selection.md, "Generic view candidates"),
  *   "view_must_serve_target" (false; true: a view must also reduce the targeted parameter's
- *   variance at least as much as the rule's pose)
+ *   variance at least as much as the rule's pose),
+ *   "accuracy_px" (unset; a number in [0.001, 100]: the session converges when the expected
+ *   projection error, "expected_error_px" of the status and result, is at most this, and ends
+ *   as not converged at max_keyframes with a reason naming the error reached and the parameter
+ *   that holds it back; null unsets it)
  * An unknown key is POSECAL_E_INVALID_ARGUMENT. Opening a camera may block up to ~3 s. The
  * camera starts streaming at the first posecal_session_step. */
 POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char* camera_uri,
@@ -265,8 +269,20 @@ POSECAL_API posecal_status posecal_session_last_frame(posecal_session* session,
  * camera's size, in place. POSECAL_E_STATE before the first frame. */
 POSECAL_API posecal_status posecal_session_render_overlay(posecal_session* session,
                                                           posecal_image* inout) POSECAL_NOEXCEPT;
+/* The map behind "expected_error_px": fills a host float image of width x height (each in
+ * [2, 16384]; rows row_stride_bytes apart, 0 = width * 4) with the predicted RMS projection
+ * error in pixels, at the measured corner noise, at points spread from image edge to image edge:
+ * value (i, j) is for pixel (i (W - 1) / (width - 1), j (H - 1) / (height - 1)) of the W x H
+ * camera image, so width = W and height = H give one value per pixel. NaN where the estimated
+ * lens has no ray. Its RMS over a 40 x 23 map is "expected_error_px". POSECAL_E_STATE before the
+ * second keyframe and inside the event callback. */
+POSECAL_API posecal_status posecal_session_expected_error_map(posecal_session* session, float* out,
+                                                              int width, int height,
+                                                              size_t row_stride_bytes) POSECAL_NOEXCEPT;
 /* Result JSON: "converged", "state", model values "fx" ... "k3", "std", "std_unit",
- * "covariance", "eps_res", "keyframes", "frames_processed", "camera" identity, "target",
+ * "covariance", "eps_res", "expected_error_px" (the predicted RMS projection error over the
+ * image at the measured corner noise; "expected_error_unit_px" at 1 px noise;
+ * "expected_error_limited_by": the intrinsic whose uncertainty contributes most), "keyframes", "frames_processed", "camera" identity, "target",
  * "locked_settings", "parameter_converged", "started"/"finished" timestamps; for sim:// cameras
  * also "eps_test", "eps_gt", "test_frames" and "ground_truth" (the first call after a new
  * keyframe renders the test set: ~1 s). POSECAL_E_STATE before the second keyframe (no

@@ -3,6 +3,7 @@
 
 #include <cmath>
 
+#include "calib/expected_error.hpp"
 #include "common/error.hpp"
 #include "io/model_file.hpp"
 
@@ -65,6 +66,11 @@ nlohmann::json calibration_json(const CalibrationResult& r) {
   }
   j["covariance"] = c;
   j["covariance_order"] = names;
+  const ExpectedError e = expected_error(r);
+  j["expected_error_px"] = number(e.rms_px);
+  j["expected_error_unit_px"] = number(e.rms_unit_px);
+  j["expected_error_limited_by"] =
+      e.limiting_param >= 0 ? nlohmann::json(names[e.limiting_param]) : nlohmann::json(nullptr);
   return j;
 }
 

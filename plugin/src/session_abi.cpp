@@ -194,6 +194,7 @@ Json status_json(posecal_session* s) {
     j["image_width"] = nullptr;
     j["image_height"] = nullptr;
     j["parameters"] = Json::object();
+    j["expected_error_px"] = nullptr;
     return j;
   }
   const FrameReport& r = eng->last_report();
@@ -214,6 +215,8 @@ Json status_json(posecal_session* s) {
   j["image_width"] = eng->estimate().width();
   j["image_height"] = eng->estimate().height();
   if (eng->state() == EngineState::kFailed) j["failure"] = eng->failure_reason();
+  const ExpectedError* expected = eng->expected_error();
+  j["expected_error_px"] = expected ? abi::number(expected->rms_px) : Json(nullptr);
   Json params = Json::object();
   for (const auto& p : eng->parameters()) {
     params[p.name] = {{"value", abi::number(p.value)},
@@ -417,6 +420,30 @@ POSECAL_API posecal_status posecal_session_last_frame(posecal_session* session,
     cv::Mat converted;
     convert_into(last, converted, out->format);
     converted.copyTo(dst);  // dst wraps the host's buffer: copyTo keeps its stride
+    return POSECAL_OK;
+  });
+}
+
+POSECAL_API posecal_status posecal_session_expected_error_map(posecal_session* session, float* out,
+                                                              int width, int height,
+                                                              size_t row_stride_bytes) noexcept {
+  return guarded(__func__, [&] {
+    require(session, "session");
+    require(out, "out");
+    check_not_in_callback(session, "posecal_session_expected_error_map");
+    if (width < 2 || height < 2 || width > 16384 || height > 16384) {
+      throw Error(ErrorCode::kInvalidArgument, "width and height must be in [2, 16384], got " +
+                                                   std::to_string(width) + "x" + std::to_string(height));
+    }
+    const size_t row_bytes = static_cast<size_t>(width) * sizeof(float);
+    if (row_stride_bytes == 0) row_stride_bytes = row_bytes;
+    if (row_stride_bytes < row_bytes || row_stride_bytes % sizeof(float) != 0) {
+      throw Error(ErrorCode::kInvalidArgument,
+                  "row_stride_bytes must be 0 or a multiple of 4 of at least " + std::to_string(row_bytes));
+    }
+    const cv::Mat map = expected_error_map(require_result(session), width, height);
+    cv::Mat dst(height, width, CV_32F, out, row_stride_bytes);
+    map.copyTo(dst);  // dst wraps the host's buffer: copyTo keeps its stride
     return POSECAL_OK;
   });
 }

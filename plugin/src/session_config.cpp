@@ -8,6 +8,7 @@ namespace {
 
 // A JSON value as the table's value type, by its JSON type (the table checks the kind).
 SessionKeyValue key_value(const std::string& key, const nlohmann::json& v) {
+  if (v.is_null()) return std::monostate{};  // unsets an optional key; refused by the others
   if (v.is_boolean()) return v.get<bool>();
   if (v.is_number_integer()) return v.get<long long>();
   if (v.is_number()) return v.get<double>();

@@ -336,6 +336,7 @@ struct Reentry {
   posecal_session* s;
   int calls;
   posecal_status step, feed, close_status, set_cb, pose_reached, skip, save, render, last_frame;
+  posecal_status error_map;
   posecal_status status, target, result;
   int close_message_ok;
 };
@@ -357,6 +358,8 @@ static void reentrant_callback(void* user, const char* kind, const char* payload
   r->save = posecal_session_save(r->s, path_in("cb.yml"));
   r->render = posecal_session_render_overlay(r->s, &img);
   r->last_frame = posecal_session_last_frame(r->s, &img);
+  float map[4 * 4];
+  r->error_map = posecal_session_expected_error_map(r->s, map, 4, 4, 0);
   char buf[65536];
   size_t size = sizeof buf;
   r->status = posecal_session_status(r->s, buf, &size);
@@ -378,6 +381,18 @@ static void test_session_arguments(posecal_context* ctx) {
   EXPECT_MESSAGE("bogus");
   EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"max_keyframes\":\"many\"}", &s));
   EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"max_keyframes\":1}", &s));
+  /* accuracy_px: a positive finite number (null unsets it). */
+  EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"accuracy_px\":0}", &s));
+  EXPECT_MESSAGE("accuracy_px");
+  EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"accuracy_px\":-1}", &s));
+  EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"accuracy_px\":1e400}", &s));
+  EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"accuracy_px\":\"0.2\"}", &s));
+  EXPECT_MESSAGE("accuracy_px");
+  EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"max_keyframes\":null}", &s));
+  EXPECT_MESSAGE("max_keyframes");
+  EXPECT_OK(posecal_session_open(ctx, "sim://", "{\"accuracy_px\":null}", &s));
+  posecal_session_close(s);
+  s = (posecal_session*)0x1;
   EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"max_keyframes\":2.5}", &s));
   EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"convergence_threshold\":2}", &s));
   EXPECT_INVALID(posecal_session_open(ctx, "sim://", "{\"lock_settings\":\"yes\"}", &s));
@@ -421,6 +436,8 @@ static void test_session_arguments(posecal_context* ctx) {
   EXPECT_INVALID(posecal_session_skip_target(NULL));
   EXPECT_INVALID(posecal_session_last_frame(NULL, &img));
   EXPECT_INVALID(posecal_session_render_overlay(NULL, &img));
+  float map[4 * 4];
+  EXPECT_INVALID(posecal_session_expected_error_map(NULL, map, 4, 4, 0));
   EXPECT_INVALID(posecal_session_result(NULL, buf, &size));
   EXPECT_INVALID(posecal_session_save(NULL, path_in("x.yml")));
   EXPECT_INVALID(posecal_session_set_callback(NULL, NULL, NULL));
@@ -536,6 +553,11 @@ static void test_session_states(posecal_context* ctx) {
   EXPECT_STATE(posecal_session_skip_target(s));
   EXPECT_STATE(posecal_session_last_frame(s, &img));
   EXPECT_STATE(posecal_session_render_overlay(s, &img));
+  {
+    float map[4 * 4];
+    EXPECT_STATE(posecal_session_expected_error_map(s, map, 4, 4, 0));
+    EXPECT_MESSAGE("two keyframes");
+  }
   size = sizeof small;
   EXPECT_STATE(posecal_session_result(s, small, &size));
   EXPECT_STATE(posecal_session_save(s, path_in("early.yml")));
@@ -581,6 +603,7 @@ static void test_session_states(posecal_context* ctx) {
   CHECK(r.save == POSECAL_E_STATE);
   CHECK(r.render == POSECAL_E_STATE);
   CHECK(r.last_frame == POSECAL_E_STATE);
+  CHECK(r.error_map == POSECAL_E_STATE);
   CHECK(r.status == POSECAL_OK);
   CHECK(r.target == POSECAL_OK || r.target == POSECAL_E_STATE);
   CHECK(r.result == POSECAL_OK || r.result == POSECAL_E_STATE);
@@ -618,6 +641,19 @@ static void test_session_states(posecal_context* ctx) {
       EXPECT_INVALID(posecal_session_save(s, NULL));
       CHECK(posecal_session_save(s, "/proc/posecal_no/result.yml") != POSECAL_OK);
       CHECK(posecal_last_error()[0] != '\0');
+      /* The expected-error map: buffer, grid size and stride. */
+      float map[6 * 5 + 8];
+      EXPECT_INVALID(posecal_session_expected_error_map(s, NULL, 6, 5, 0));
+      EXPECT_INVALID(posecal_session_expected_error_map(s, map, 1, 5, 0));
+      EXPECT_INVALID(posecal_session_expected_error_map(s, map, 6, 16385, 0));
+      EXPECT_INVALID(posecal_session_expected_error_map(s, map, 6, 5, 6 * 4 - 4));
+      EXPECT_INVALID(posecal_session_expected_error_map(s, map, 6, 5, 6 * 4 + 2));
+      EXPECT_MESSAGE("row_stride_bytes");
+      map[6 * 5] = -7.0f;
+      EXPECT_OK(posecal_session_expected_error_map(s, map, 6, 5, 0));
+      CHECK(map[0] > 0 && map[6 * 5 - 1] > 0 && map[6 * 5] == -7.0f); /* packed: nothing beyond */
+      EXPECT_OK(posecal_session_expected_error_map(s, map, 3, 5, 8 * 4)); /* rows 8 floats apart */
+      CHECK(map[0] > 0 && map[8 * 4 + 2] > 0);
     }
   }
   CHECK(saved_checks);

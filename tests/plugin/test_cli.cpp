@@ -199,9 +199,31 @@ TEST(Cli, SimulateExitCodes) {
     EXPECT_TRUE(j[name.get<std::string>()].is_number()) << name;
     EXPECT_TRUE(j["std"][name.get<std::string>()].is_number()) << name;
   }
+  // The expected error and its map are in the summary.
+  EXPECT_GT(j["expected_error_px"].get<double>(), 0.0) << r.out;
+  EXPECT_TRUE(j["expected_error_limited_by"].is_string()) << r.out;
+  ASSERT_EQ(j["expected_error_map"]["px"].size(), 9u) << r.out;
+  ASSERT_EQ(j["expected_error_map"]["px"][0].size(), 16u) << r.out;
+  EXPECT_GT(j["expected_error_map"]["px"][0][0].get<double>(), 0.0);
   EXPECT_EQ(run("simulate --operator cat").status, 1);
   EXPECT_EQ(run("simulate --seed x").status, 1);
+  EXPECT_EQ(run("simulate --accuracy-px 0").status, 1);
+  EXPECT_EQ(run("simulate --accuracy-px -1").status, 1);
   EXPECT_EQ(run("simulate --camera-model /nonexistent.yml").status, 2);
+}
+
+// --accuracy-px is the stop rule: converged means the expected error is at most that; one that
+// cannot be reached within --max-keyframes ends the run as not converged, saying why.
+TEST(Cli, SimulateToAnAccuracy) {
+  CliRun r = run("simulate --seed 4 --accuracy-px 0.4 --json", true);
+  ASSERT_EQ(r.status, 0) << r.out;
+  auto j = nlohmann::json::parse(r.out);
+  EXPECT_TRUE(j["converged"].get<bool>());
+  EXPECT_LE(j["expected_error_px"].get<double>(), 0.4);
+  r = run("simulate --seed 4 --accuracy-px 0.001 --max-keyframes 4 --json", true);
+  ASSERT_EQ(r.status, 3) << r.out;
+  j = nlohmann::json::parse(r.out);
+  EXPECT_NE(j["failure"].get<std::string>().find("accuracy_px 0.001 px"), std::string::npos) << r.out;
 }
 
 // --fix holds parameters at their initial value (distortion: 0) through the whole session: they

@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 
 #include <fstream>
+#include <limits>
 #include <sstream>
 #include <string>
 
@@ -25,6 +26,8 @@ SessionKeyValue default_value(const SessionKeyInfo& k) {
   const std::string text = k.default_text;
   switch (k.kind) {
     case SessionKeyKind::kNumber: return std::stod(text);
+    case SessionKeyKind::kOptionalNumber:
+      return text.empty() ? SessionKeyValue(std::monostate{}) : SessionKeyValue(std::stod(text));
     case SessionKeyKind::kInteger: return std::stoll(text);
     case SessionKeyKind::kBool: return text == "true";
     case SessionKeyKind::kChoice:
@@ -48,7 +51,10 @@ TEST(SessionKeys, RangesAreTheValidationsRanges) {
   // Each numeric key's range endpoints are valid options, and just outside them the options are
   // not (the ABI and the engine cannot disagree, as max_tilt_deg 89 once did).
   for (const SessionKeyInfo& k : session_keys()) {
-    if (k.kind != SessionKeyKind::kNumber && k.kind != SessionKeyKind::kInteger) continue;
+    if (k.kind != SessionKeyKind::kNumber && k.kind != SessionKeyKind::kInteger &&
+        k.kind != SessionKeyKind::kOptionalNumber) {
+      continue;
+    }
     const bool integer = k.kind == SessionKeyKind::kInteger;
     for (const double v : {k.lo, k.hi}) {
       SessionOptions o;
@@ -81,6 +87,7 @@ TEST(SessionKeys, RangesAreTheValidationsRanges) {
     EXPECT_NE(why.find(#key), std::string::npos) << why;                             \
   }
 #define POSECAL_OUT_OF_RANGE_Integer(key, member, lo, hi, step) POSECAL_OUT_OF_RANGE_Number(key, member, lo, hi, 1)
+#define POSECAL_OUT_OF_RANGE_OptionalNumber(key, member, lo, hi, step) POSECAL_OUT_OF_RANGE_Number(key, member, lo, hi, step)
 #define POSECAL_OUT_OF_RANGE_Bool(...)
 #define POSECAL_OUT_OF_RANGE_Choice(...)
 #define POSECAL_OUT_OF_RANGE_Text(...)
@@ -111,6 +118,36 @@ TEST(SessionKeys, ValuesOfTheWrongKindAreRefusedNamingTheKey) {
   EXPECT_THROW(set_session_key(&o, "no_such_key", 1.0), Error);
   EXPECT_THROW(set_session_key(&o, "convergence_measure", std::string("median")), Error);
   EXPECT_THROW(set_session_key(&o, "target", std::string("charuco:1x1")), Error);
+}
+
+TEST(SessionKeys, AccuracyIsAPositiveFiniteNumberOrUnset) {
+  SessionOptions o;
+  EXPECT_FALSE(o.engine.accuracy_px.has_value());
+  set_session_key(&o, "accuracy_px", 0.25);
+  ASSERT_TRUE(o.engine.accuracy_px.has_value());
+  EXPECT_DOUBLE_EQ(*o.engine.accuracy_px, 0.25);
+  EXPECT_TRUE(get_session_key(o, "accuracy_px") == SessionKeyValue(0.25));
+  set_session_key(&o, "accuracy_px", 1LL);  // an integer is a number
+  EXPECT_DOUBLE_EQ(*o.engine.accuracy_px, 1.0);
+  set_session_key(&o, "accuracy_px", std::monostate{});
+  EXPECT_FALSE(o.engine.accuracy_px.has_value());
+  for (const double bad : {0.0, -0.5, std::numeric_limits<double>::quiet_NaN(),
+                           std::numeric_limits<double>::infinity()}) {
+    try {
+      set_session_key(&o, "accuracy_px", bad);
+      ADD_FAILURE() << "accuracy_px " << bad << " accepted";
+    } catch (const Error& e) {
+      EXPECT_EQ(e.code(), ErrorCode::kInvalidArgument);
+      EXPECT_NE(std::string(e.what()).find("accuracy_px"), std::string::npos) << e.what();
+    }
+    EngineOptions direct;
+    direct.accuracy_px = bad;
+    std::string why;
+    EXPECT_FALSE(direct.is_valid(&why)) << bad;
+    EXPECT_NE(why.find("accuracy_px"), std::string::npos) << why;
+  }
+  // A key that is not optional cannot be unset.
+  EXPECT_THROW(set_session_key(&o, "max_keyframes", std::monostate{}), Error);
 }
 
 TEST(SessionKeys, ChoicesRoundTrip) {

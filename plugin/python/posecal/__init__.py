@@ -318,7 +318,8 @@ class Context(_Handle):
         (core/session/session_keys.def): target, operator, convergence_threshold, max_keyframes,
         jaccard_threshold, still_motion_px, constraint_factor, target_timeout_frames,
         pose_candidates, lock_settings, max_tilt_deg, fixed, convergence_measure,
-        measured_convergence, candidate_score, view_candidates, view_must_serve_target."""
+        measured_convergence, candidate_score, view_candidates, view_must_serve_target,
+        accuracy_px."""
         return Session(self, uri, **config)
 
 
@@ -408,6 +409,16 @@ class Session(_Handle):
         img, keep = _image_view(data, width, height, stride, format, writable=True)
         _check(_lib.posecal_session_render_overlay(self._handle(), ctypes.byref(img)))
         del keep
+
+    def expected_error_map(self, width=40, height=23):
+        """The predicted RMS projection error in pixels at width x height points from image edge
+        to image edge (posecal_session_expected_error_map), as a list of `height` rows of
+        `width` floats (NaN where the lens has no ray). Raises StateError before the second
+        keyframe."""
+        values = (ctypes.c_float * (width * height))()
+        _check(_lib.posecal_session_expected_error_map(self._handle(), values, int(width),
+                                                       int(height), 0))
+        return [list(values[j * width:(j + 1) * width]) for j in range(height)]
 
     # ---- robot mode -----------------------------------------------------------------------
     def pose_reached(self):

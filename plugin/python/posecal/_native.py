@@ -107,6 +107,10 @@ _PROTOTYPES = {
     "posecal_session_skip_target": (_status, [_p]),
     "posecal_session_last_frame": (_status, [_p, _c.POINTER(Image)]),
     "posecal_session_render_overlay": (_status, [_p, _c.POINTER(Image)]),
+    "posecal_session_expected_error_map": (
+        _status,
+        [_p, _c.POINTER(_c.c_float), _c.c_int, _c.c_int, _c.c_size_t],
+    ),
     "posecal_session_result": (_status, [_p, _c.c_char_p, _size_p]),
     "posecal_session_save": (_status, [_p, _s]),
     "posecal_session_set_callback": (_status, [_p, EVENT_FN, _p]),

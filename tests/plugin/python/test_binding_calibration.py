@@ -52,6 +52,14 @@ class Calibration(unittest.TestCase):
             s.save(os.path.join(self.tmp.name, "cam.json"))
             frame, w, h, stride = s.last_frame(with_overlay=True)
             self.assertEqual((w, h, len(frame)), (1280, 720, 1280 * 720 * 3))
+            # The expected error: a figure in the status and the result, and its map.
+            self.assertGreater(r["expected_error_px"], 0)
+            self.assertIn(r["expected_error_limited_by"], r["covariance_order"])
+            self.assertAlmostEqual(s.status["expected_error_px"], r["expected_error_px"], places=9)
+            grid = s.expected_error_map()
+            self.assertEqual((len(grid), len(grid[0])), (23, 40))
+            rms = (sum(v * v for row in grid for v in row) / (40 * 23)) ** 0.5
+            self.assertAlmostEqual(rms, r["expected_error_px"], delta=1e-5 * rms)
         # The saved file, evaluated on the same simulated camera, gives the session's errors.
         ev = self.ctx.evaluate(yml, "sim://?seed=5")
         self.assertEqual(ev["source"], "sim_test_set")

@@ -59,6 +59,9 @@ class Errors(unittest.TestCase):
                          "sim://", max_keyframes="many")
         self.assertError(posecal.InvalidArgumentError, errors.E_INVALID_ARGUMENT, self.ctx.open,
                          "sim://", target="charuco:1")
+        for bad in (0, -0.1, float("nan"), float("inf"), "0.2"):
+            self.assertError(posecal.InvalidArgumentError, errors.E_INVALID_ARGUMENT,
+                             self.ctx.open, "sim://", accuracy_px=bad)
         self.assertError(posecal.NotFoundError, errors.E_NOT_FOUND, self.ctx.open,
                          "images:///nonexistent/posecal")
         self.assertError(posecal.InvalidArgumentError, errors.E_INVALID_ARGUMENT, self.ctx.open,
@@ -72,6 +75,8 @@ class Errors(unittest.TestCase):
                              os.path.join(self.tmp.name, "x.yml"))
             self.assertError(posecal.StateError, errors.E_STATE, s.pose_reached)  # person
             self.assertError(posecal.StateError, errors.E_STATE, s.last_frame)
+            self.assertError(posecal.StateError, errors.E_STATE, s.expected_error_map)
+            self.assertIsNone(s.status["expected_error_px"])
             self.assertTrue(s.step())
             self.assertFalse(s.finished)
             self.assertError(posecal.StateError, errors.E_STATE, s.skip_target)

@@ -1,0 +1,101 @@
+#include "calib/expected_error.hpp"
+
+#include <cmath>
+#include <limits>
+
+#include "calib/information.hpp"
+#include "common/error.hpp"
+
+namespace posecal {
+
+namespace {
+
+void check_grid(const CalibrationResult& r, int cols, int rows) {
+  if (cols < 2 || rows < 2)
+    throw Error(ErrorCode::kInvalidArgument, "expected error: the grid must be at least 2x2");
+  const Eigen::Index n = r.model.num_params();
+  if (r.covariance.rows() < n || r.covariance.cols() < n ||
+      static_cast<Eigen::Index>(r.fixed.size()) != n) {
+    throw Error(ErrorCode::kInvalidArgument,
+                "expected error: the result has no covariance of its intrinsics");
+  }
+}
+
+// Pixel of grid point (i, j), edge to edge.
+Eigen::Vector2d grid_pixel(const CameraModel& m, int i, int j, int cols, int rows) {
+  return {i * (m.width() - 1.0) / (cols - 1), j * (m.height() - 1.0) / (rows - 1)};
+}
+
+// The covariance of the free intrinsics at unit noise (marginal over the poses).
+Eigen::MatrixXd free_covariance(const CalibrationResult& r, const std::vector<int>& free_idx) {
+  const Eigen::Index m = static_cast<Eigen::Index>(free_idx.size());
+  Eigen::MatrixXd C(m, m);
+  for (Eigen::Index a = 0; a < m; ++a)
+    for (Eigen::Index b = 0; b < m; ++b) C(a, b) = r.covariance(free_idx[a], free_idx[b]);
+  return C;
+}
+
+}  // namespace
+
+ExpectedError expected_error(const CalibrationResult& result, int cols, int rows) {
+  check_grid(result, cols, rows);
+  const CameraModel& model = result.model;
+  const std::vector<int> free_idx = free_intrinsics(result.fixed);
+  const Eigen::Index m = static_cast<Eigen::Index>(free_idx.size());
+  Eigen::MatrixXd G = Eigen::MatrixXd::Zero(m, m);  // mean of J^T J over the grid
+  Eigen::Matrix<double, 2, Eigen::Dynamic> J(2, m);
+  ExpectedError out;
+  for (int j = 0; j < rows; ++j) {
+    for (int i = 0; i < cols; ++i) {
+      if (!ray_intrinsics_jacobian(model, free_idx, grid_pixel(model, i, j, cols, rows), &J))
+        continue;
+      G.noalias() += J.transpose() * J;
+      ++out.points;
+    }
+  }
+  if (out.points == 0) {
+    out.rms_px = out.rms_unit_px = std::numeric_limits<double>::quiet_NaN();
+    return out;
+  }
+  G /= out.points;
+  const Eigen::MatrixXd C = free_covariance(result, free_idx);
+  const double ms_unit = std::max(0.0, (G * C).trace());
+  out.rms_unit_px = std::sqrt(ms_unit);
+  out.rms_px = out.rms_unit_px * std::sqrt(std::max(0.0, result.residual_variance));
+  // Knowing intrinsic k exactly conditions the covariance to C - C_k C_k^T / C_kk, which lowers
+  // trace(G C) by C_k^T G C_k / C_kk.
+  for (Eigen::Index k = 0; k < m; ++k) {
+    if (!(C(k, k) > 0) || !(ms_unit > 0)) continue;
+    const double share = C.col(k).dot(G * C.col(k)) / C(k, k) / ms_unit;
+    if (out.limiting_param < 0 || share > out.limiting_share) {
+      out.limiting_param = free_idx[k];
+      out.limiting_share = std::min(1.0, std::max(0.0, share));
+    }
+  }
+  return out;
+}
+
+cv::Mat expected_error_map(const CalibrationResult& result, int cols, int rows) {
+  check_grid(result, cols, rows);
+  const CameraModel& model = result.model;
+  const std::vector<int> free_idx = free_intrinsics(result.fixed);
+  const Eigen::MatrixXd C =
+      free_covariance(result, free_idx) * std::max(0.0, result.residual_variance);
+  Eigen::Matrix<double, 2, Eigen::Dynamic> J(2, static_cast<Eigen::Index>(free_idx.size()));
+  Eigen::Matrix<double, 2, Eigen::Dynamic> JC(2, static_cast<Eigen::Index>(free_idx.size()));
+  cv::Mat map(rows, cols, CV_32F);
+  for (int j = 0; j < rows; ++j) {
+    float* row = map.ptr<float>(j);
+    for (int i = 0; i < cols; ++i) {
+      if (!ray_intrinsics_jacobian(model, free_idx, grid_pixel(model, i, j, cols, rows), &J)) {
+        row[i] = std::numeric_limits<float>::quiet_NaN();
+        continue;
+      }
+      JC.noalias() = J * C;  // trace(J C J^T) without temporaries
+      row[i] = static_cast<float>(std::sqrt(std::max(0.0, JC.cwiseProduct(J).sum())));
+    }
+  }
+  return map;
+}
+
+}  // namespace posecal
