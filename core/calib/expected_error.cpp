@@ -1,6 +1,11 @@
 #include "calib/expected_error.hpp"
 
+#include <algorithm>
 #include <cmath>
+#include <random>
+#include <vector>
+
+#include <Eigen/Eigenvalues>
 #include <limits>
 
 #include "calib/information.hpp"
@@ -35,6 +40,41 @@ Eigen::MatrixXd free_covariance(const CalibrationResult& r, const std::vector<in
   return C;
 }
 
+// Mean and 90th percentile of the mean over the grid of |J_p e|, e ~ N(0, C): `jacobians` stacks
+// the points' 2 x m Jacobians (2P x m).
+void distance_distribution(const Eigen::MatrixXd& jacobians, const Eigen::MatrixXd& C, ExpectedError* out) {
+  const Eigen::Index m = C.rows();
+  const Eigen::Index points = jacobians.rows() / 2;
+  // C = V D V^T; e = V sqrt(D) z with z ~ N(0, I) (eigenvalues below 0, numerical, are 0).
+  const Eigen::SelfAdjointEigenSolver<Eigen::MatrixXd> eig(C);
+  const Eigen::MatrixXd L = eig.eigenvectors() * eig.eigenvalues().cwiseMax(0.0).cwiseSqrt().asDiagonal();
+  const Eigen::MatrixXd A = jacobians * L;  // 2P x m
+  std::mt19937_64 rng(0x5eedull);
+  std::normal_distribution<double> normal;
+  constexpr int kChunk = 250;
+  std::vector<double> means;
+  means.reserve(kExpectedErrorDraws);
+  Eigen::MatrixXd Z(m, kChunk);
+  for (int done = 0; done < kExpectedErrorDraws; done += kChunk) {
+    for (Eigen::Index c = 0; c < kChunk; ++c)
+      for (Eigen::Index r = 0; r < m; ++r) Z(r, c) = normal(rng);
+    const Eigen::MatrixXd E = A * Z;  // 2P x kChunk: every point's error for every draw
+    for (Eigen::Index d = 0; d < kChunk; ++d) {
+      double sum = 0;
+      for (Eigen::Index p = 0; p < points; ++p) sum += std::hypot(E(2 * p, d), E(2 * p + 1, d));
+      means.push_back(sum / static_cast<double>(points));
+    }
+  }
+  double total = 0;
+  for (double v : means) total += v;
+  out->mean_px = total / static_cast<double>(means.size());
+  std::sort(means.begin(), means.end());
+  const double at = 0.9 * static_cast<double>(means.size() - 1);
+  const size_t lo = static_cast<size_t>(at);
+  const size_t hi = std::min(lo + 1, means.size() - 1);
+  out->p90_px = means[lo] + (means[hi] - means[lo]) * (at - static_cast<double>(lo));
+}
+
 }  // namespace
 
 ExpectedError expected_error(const CalibrationResult& result, int cols, int rows) {
@@ -44,24 +84,28 @@ ExpectedError expected_error(const CalibrationResult& result, int cols, int rows
   const Eigen::Index m = static_cast<Eigen::Index>(free_idx.size());
   Eigen::MatrixXd G = Eigen::MatrixXd::Zero(m, m);  // mean of J^T J over the grid
   Eigen::Matrix<double, 2, Eigen::Dynamic> J(2, m);
+  Eigen::MatrixXd jacobians(2 * cols * rows, m);
   ExpectedError out;
   for (int j = 0; j < rows; ++j) {
     for (int i = 0; i < cols; ++i) {
       if (!ray_intrinsics_jacobian(model, free_idx, grid_pixel(model, i, j, cols, rows), &J))
         continue;
       G.noalias() += J.transpose() * J;
+      jacobians.middleRows(2 * out.points, 2) = J;
       ++out.points;
     }
   }
   if (out.points == 0) {
-    out.rms_px = out.rms_unit_px = std::numeric_limits<double>::quiet_NaN();
+    out.rms_px = out.rms_unit_px = out.mean_px = out.p90_px = std::numeric_limits<double>::quiet_NaN();
     return out;
   }
   G /= out.points;
   const Eigen::MatrixXd C = free_covariance(result, free_idx);
   const double ms_unit = std::max(0.0, (G * C).trace());
   out.rms_unit_px = std::sqrt(ms_unit);
-  out.rms_px = out.rms_unit_px * std::sqrt(std::max(0.0, result.residual_variance));
+  const double noise_variance = std::max(0.0, result.residual_variance);
+  out.rms_px = out.rms_unit_px * std::sqrt(noise_variance);
+  distance_distribution(jacobians.topRows(2 * out.points), C * noise_variance, &out);
   // Knowing intrinsic k exactly conditions the covariance to C - C_k C_k^T / C_kk, which lowers
   // trace(G C) by C_k^T G C_k / C_kk.
   for (Eigen::Index k = 0; k < m; ++k) {

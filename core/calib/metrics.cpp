@@ -49,4 +49,26 @@ double ground_truth_error(const CameraModel& truth, const CameraModel& estimate,
   return n > 0 ? sum / n : std::numeric_limits<double>::quiet_NaN();
 }
 
+double ground_truth_error_edges(const CameraModel& truth, const CameraModel& estimate, int cols, int rows,
+                                bool rms) {
+  if (cols < 2 || rows < 2) throw Error(ErrorCode::kInvalidArgument, "eps_gt: edge grid must be >= 2x2");
+  if (truth.size() != estimate.size()) {
+    throw Error(ErrorCode::kInvalidArgument, "eps_gt: models have different image sizes");
+  }
+  double sum = 0;
+  int n = 0;
+  for (int j = 0; j < rows; ++j) {
+    for (int i = 0; i < cols; ++i) {
+      const Eigen::Vector2d p(i * (truth.width() - 1.0) / (cols - 1), j * (truth.height() - 1.0) / (rows - 1));
+      Eigen::Vector2d xn, q;
+      if (!truth.unproject(p, &xn)) continue;
+      if (!estimate.project(Eigen::Vector3d(xn.x(), xn.y(), 1.0), &q)) continue;
+      sum += rms ? (q - p).squaredNorm() : (q - p).norm();
+      ++n;
+    }
+  }
+  if (n == 0) return std::numeric_limits<double>::quiet_NaN();
+  return rms ? std::sqrt(sum / n) : sum / n;
+}
+
 }  // namespace posecal

@@ -25,4 +25,10 @@ TestError test_error(const CameraModel& estimate, const std::vector<Observation>
 double ground_truth_error(const CameraModel& truth, const CameraModel& estimate, int cols = 40,
                           int rows = 23);
 
+// eps_gt over the grid of the expected error (calib/expected_error.hpp): cols x rows points from
+// image edge to image edge, corners included, at pixel (i (W-1)/(cols-1), j (H-1)/(rows-1)); the
+// mean distance, or with `rms` the root mean square. NaN if no grid ray exists.
+double ground_truth_error_edges(const CameraModel& truth, const CameraModel& estimate, int cols = 40, int rows = 23,
+                                bool rms = false);
+
 }  // namespace posecal

@@ -282,6 +282,8 @@ POSECAL_API posecal_status posecal_session_expected_error_map(posecal_session* s
 /* Result JSON: "converged", "state", model values "fx" ... "k3", "std", "std_unit",
  * "covariance", "eps_res", "expected_error_px" (the predicted RMS projection error over the
  * image at the measured corner noise; "expected_error_unit_px" at 1 px noise;
+ * "expected_error_mean_px" and "expected_error_p90_px": the mean and 90th percentile of the
+ * mean distance over the image that such a calibration realises;
  * "expected_error_limited_by": the intrinsic whose uncertainty contributes most), "keyframes", "frames_processed", "camera" identity, "target",
  * "locked_settings", "parameter_converged", "started"/"finished" timestamps; for sim:// cameras
  * also "eps_test", "eps_gt", "test_frames" and "ground_truth" (the first call after a new

@@ -69,6 +69,8 @@ nlohmann::json calibration_json(const CalibrationResult& r) {
   const ExpectedError e = expected_error(r);
   j["expected_error_px"] = number(e.rms_px);
   j["expected_error_unit_px"] = number(e.rms_unit_px);
+  j["expected_error_mean_px"] = number(e.mean_px);
+  j["expected_error_p90_px"] = number(e.p90_px);
   j["expected_error_limited_by"] =
       e.limiting_param >= 0 ? nlohmann::json(names[e.limiting_param]) : nlohmann::json(nullptr);
   return j;

@@ -2,7 +2,7 @@
 //
 //   build/bin/bench_pose_selection [--cameras N] [--camera c525|industrial|tele] [--threads T]
 //       [--config default|default-std|paper|std] [--distortion-tilt DEG] [--score variance|projection]
-//       [--csv FILE]
+//       [--accuracy-px PX] [--csv FILE]
 //       [--figure3 FILE.png]
 //
 // Per camera (seed i): the camera is sampled around the reference with 10% std per parameter
@@ -78,6 +78,9 @@ struct Run {
   // what eps_gt is in expectation over the image noise, without the one random draw each
   // calibration realises, so methods compare with far less spread (--csv, summary line).
   double eps_gt_predicted = NAN;
+  // eps_gt over the edge-to-edge grid (corners included; mean distance), and the session's own
+  // expected_error_px (an RMS over that grid): the stop figure of --accuracy-px.
+  double eps_gt_edges = NAN, expected_error_px = NAN, expected_mean_px = NAN, expected_p90_px = NAN;
   std::map<std::string, AttemptStats> attempts;
 };
 
@@ -100,6 +103,7 @@ double g_distortion_tilt_deg = -1;
 std::string g_score;
 int g_views = 0;  // --views N: EngineOptions::view_candidates
 bool g_serve = false;  // --views-serve-target: EngineOptions::view_must_serve_target
+double g_accuracy_px = 0;  // --accuracy-px PX (> 0): EngineOptions::accuracy_px
 
 // Engine configurations compared in docs/benchmarks.md.
 void apply_config(const std::string& config, EngineOptions* eo) {
@@ -109,6 +113,7 @@ void apply_config(const std::string& config, EngineOptions* eo) {
   else if (!g_score.empty()) throw Error(ErrorCode::kInvalidArgument, "unknown --score '" + g_score + "' (variance, projection)");
   eo->view_candidates = g_views;
   eo->view_must_serve_target = g_serve;
+  if (g_accuracy_px > 0) eo->accuracy_px = g_accuracy_px;
   if (config == "default") return;
   if (config == "prospective" || config == "prospective-std") {
     // Convergence decided only by the predicted reduction of the best next pose.
@@ -179,6 +184,10 @@ Run closed_loop(const CameraModel& truth, const BoardSpec& target, uint64_t seed
     r.eps_gt = ev.eps_gt;
     split_eps_gt(truth, eng.estimate(), &r);
     r.eps_gt_predicted = predicted_eps_gt(*eng.result());
+    r.eps_gt_edges = ground_truth_error_edges(truth, eng.estimate());
+    r.expected_error_px = eng.expected_error()->rms_px;
+    r.expected_mean_px = eng.expected_error()->mean_px;
+    r.expected_p90_px = eng.expected_error()->p90_px;
   }
   r.attempts = sim->op().attempts();
   return r;
@@ -214,6 +223,7 @@ Run random_baseline(const CameraModel& truth, const BoardSpec& target, uint64_t 
     r.eps_test = ev.eps_test;
     r.eps_gt = ev.eps_gt;
     split_eps_gt(truth, m, &r);
+    r.eps_gt_edges = ground_truth_error_edges(truth, m);
     // Covariance of the same frames through posecal's calibration (equal to OpenCV's solution,
     // tests/core: Calibration.NoWorseThanOpenCVOnTheSameFrames).
     r.eps_gt_predicted = predicted_eps_gt(calibrate(frames, truth.size()));
@@ -254,6 +264,44 @@ std::string fmt(const Stats& s, const char* f) {
   std::snprintf(e, sizeof e, f, s.max);
   std::snprintf(buf, sizeof buf, "%s [%s, %s] (%s-%s)", a, b, c, d, e);
   return buf;
+}
+
+// The honesty of the stop figure: expected_error_px against the realised edge-grid eps_gt, and
+// with --accuracy-px how often the realised error stays within 1.2 x the requested accuracy.
+template <class Column>
+void print_accuracy(const std::vector<CameraRuns>& runs, Column column) {
+  std::printf("| method | expected_error_px (RMS) | expected mean eps_gt | expected p90 | realised eps_gt, edge grid [px] "
+              "| realised / expected mean | realised <= expected p90 |");
+  if (g_accuracy_px > 0) std::printf(" converged | realised <= 1.2 x %.3f px (of converged) |", g_accuracy_px);
+  std::printf("\n|---|---|---|---|---|---|---|%s\n", g_accuracy_px > 0 ? "---|---|" : "");
+  for (auto run : {&CameraRuns::person, &CameraRuns::robot}) {
+    std::printf("| pose selection, %s | %s | %s | %s | %s | %s |", run == &CameraRuns::person ? "person" : "robot",
+                fmt(stats(column([&](const CameraRuns& r) { return (r.*run).expected_error_px; })), "%.3f").c_str(),
+                fmt(stats(column([&](const CameraRuns& r) { return (r.*run).expected_mean_px; })), "%.3f").c_str(),
+                fmt(stats(column([&](const CameraRuns& r) { return (r.*run).expected_p90_px; })), "%.3f").c_str(),
+                fmt(stats(column([&](const CameraRuns& r) { return (r.*run).eps_gt_edges; })), "%.3f").c_str(),
+                fmt(stats(column([&](const CameraRuns& r) { return (r.*run).eps_gt_edges / (r.*run).expected_mean_px; })),
+                    "%.2f").c_str());
+    int within_p90 = 0, with_result = 0;
+    for (const CameraRuns& r : runs) {
+      if (!std::isfinite((r.*run).eps_gt_edges)) continue;
+      ++with_result;
+      within_p90 += (r.*run).eps_gt_edges <= (r.*run).expected_p90_px;
+    }
+    std::printf(" %d/%d |", within_p90, with_result);
+    if (g_accuracy_px > 0) {
+      int converged = 0, within = 0;
+      for (const CameraRuns& r : runs) {
+        if (!(r.*run).converged) continue;
+        ++converged;
+        within += (r.*run).eps_gt_edges <= 1.2 * g_accuracy_px;
+      }
+      std::printf(" %d/%zu | %d/%d (%.0f%%) |", converged, runs.size(), within, converged,
+                  converged ? 100.0 * within / converged : 0.0);
+    }
+    std::printf("\n");
+  }
+  std::printf("\n");
 }
 
 // Paper Figure 3: 2 initial poses, then 8 C_Delta then 10 C_K poses (or the reverse), mean sigma
@@ -379,6 +427,7 @@ int main(int argc, char** argv) {
     else if (a == "--score") g_score = next();
     else if (a == "--views") g_views = std::stoi(next());
     else if (a == "--views-serve-target") g_serve = true;
+    else if (a == "--accuracy-px") g_accuracy_px = std::stod(next());
     else if (a == "--csv") o.csv = next();
     else if (a == "--figure3") o.figure3 = next();
     else if (a == "--figure3-cameras") o.figure3_cameras = std::stoi(next());
@@ -453,6 +502,7 @@ int main(int argc, char** argv) {
                     })), "%.2f").c_str());
   }
   std::printf("\n");
+  print_accuracy(runs, column);
   // Targets reached per attempt, by target kind.
   for (const M m : {M{"person", &CameraRuns::person}, M{"robot", &CameraRuns::robot}}) {
     std::map<std::string, AttemptStats> total;
@@ -473,13 +523,15 @@ int main(int argc, char** argv) {
       std::fprintf(stderr, "cannot write %s\n", o.csv.c_str());
       return 1;
     }
-    std::fprintf(f, "seed,method,converged,keyframes,frames,eps_test,eps_gt,eps_gt_pinhole,eps_gt_distortion,eps_gt_predicted\n");
+    std::fprintf(f, "seed,method,converged,keyframes,frames,eps_test,eps_gt,eps_gt_pinhole,eps_gt_distortion,eps_gt_predicted,"
+                 "eps_gt_edges,expected_error_px,expected_mean_px,expected_p90_px\n");
     for (const auto& r : runs) {
       for (const M m : {M{"person", &CameraRuns::person}, M{"robot", &CameraRuns::robot}, M{"random10", &CameraRuns::base10},
                         M{"random20", &CameraRuns::base20}}) {
         const Run& x = r.*(m.run);
-        std::fprintf(f, "%d,%s,%d,%d,%d,%.6f,%.6f,%.6f,%.6f,%.6f\n", r.seed, m.name, x.converged, x.keyframes,
-                     x.frames, x.eps_test, x.eps_gt, x.eps_gt_pinhole, x.eps_gt_distortion, x.eps_gt_predicted);
+        std::fprintf(f, "%d,%s,%d,%d,%d,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f\n", r.seed, m.name, x.converged,
+                     x.keyframes, x.frames, x.eps_test, x.eps_gt, x.eps_gt_pinhole, x.eps_gt_distortion,
+                     x.eps_gt_predicted, x.eps_gt_edges, x.expected_error_px, x.expected_mean_px, x.expected_p90_px);
       }
     }
     std::fclose(f);

@@ -8,6 +8,7 @@
 #include "board/views.hpp"
 #include "calib/calibration.hpp"
 #include "calib/expected_error.hpp"
+#include "calib/metrics.hpp"
 #include "common/error.hpp"
 #include "lens/reference_models.hpp"
 #include "session/session.hpp"
@@ -46,20 +47,7 @@ std::vector<Observation> noisy_views(const CameraModel& truth, const Board& boar
 // The realised counterpart of rms_px: the RMS over the same edge-to-edge grid of the distance
 // between the true and the estimated projection of each true ray.
 double realised_rms(const CameraModel& truth, const CameraModel& estimate, int cols, int rows) {
-  double ss = 0;
-  int n = 0;
-  for (int j = 0; j < rows; ++j) {
-    for (int i = 0; i < cols; ++i) {
-      const Eigen::Vector2d p(i * (truth.width() - 1.0) / (cols - 1),
-                              j * (truth.height() - 1.0) / (rows - 1));
-      Eigen::Vector2d xn, q;
-      if (!truth.unproject(p, &xn) || !estimate.project(Eigen::Vector3d(xn.x(), xn.y(), 1), &q))
-        continue;
-      ss += (q - p).squaredNorm();
-      ++n;
-    }
-  }
-  return std::sqrt(ss / n);
+  return ground_truth_error_edges(truth, estimate, cols, rows, true);
 }
 
 }  // namespace
@@ -74,6 +62,8 @@ TEST(ExpectedError, PredictsTheRealisedErrorOverNoiseDraws) {
   const std::vector<Pose> views = random_board_views(77, 20, truth, board);
   std::mt19937_64 rng(5);
   double realised_ms = 0, predicted_ms = 0, predicted_unit_ms = 0;
+  double realised_mean = 0, predicted_mean = 0;
+  int within_p90 = 0;
   constexpr int kDraws = 40;
   for (int d = 0; d < kDraws; ++d) {
     const CalibrationResult r =
@@ -82,6 +72,12 @@ TEST(ExpectedError, PredictsTheRealisedErrorOverNoiseDraws) {
     ASSERT_EQ(e.points, kExpectedErrorCols * kExpectedErrorRows);
     const double realised = realised_rms(truth, r.model, kExpectedErrorCols, kExpectedErrorRows);
     realised_ms += realised * realised / kDraws;
+    // The mean distance (what eps_gt measures) against its predicted distribution.
+    const double distance = ground_truth_error_edges(truth, r.model);
+    realised_mean += distance / kDraws;
+    predicted_mean += e.mean_px / kDraws;
+    within_p90 += distance <= e.p90_px;
+    EXPECT_GT(e.p90_px, e.mean_px);
     predicted_ms += e.rms_px * e.rms_px / kDraws;
     predicted_unit_ms += e.rms_unit_px * e.rms_unit_px / kDraws;
   }
@@ -90,6 +86,13 @@ TEST(ExpectedError, PredictsTheRealisedErrorOverNoiseDraws) {
               std::sqrt(realised_ms), std::sqrt(predicted_ms), ratio, std::sqrt(predicted_unit_ms));
   EXPECT_GT(ratio, 0.8);
   EXPECT_LT(ratio, 1.25);
+  std::printf("realised mean distance %.4f px, predicted %.4f px; within the predicted p90 in %d of %d\n",
+              realised_mean, predicted_mean, within_p90, kDraws);
+  EXPECT_GT(realised_mean / predicted_mean, 0.8);
+  EXPECT_LT(realised_mean / predicted_mean, 1.25);
+  // 90% expected: 40 draws give 36 +- 1.9.
+  EXPECT_GE(within_p90, 31);
+  EXPECT_LE(within_p90, 40);
   // The unit figure is the same prediction without the measured noise: 0.05 px of it.
   EXPECT_NEAR(std::sqrt(predicted_ms / predicted_unit_ms), 0.05, 0.005);
 }
