@@ -27,31 +27,12 @@ TestError test_error(const CameraModel& estimate, const std::vector<Observation>
   return out;
 }
 
-double ground_truth_error(const CameraModel& truth, const CameraModel& estimate, int cols,
-                          int rows) {
-  if (cols < 1 || rows < 1) throw Error(ErrorCode::kInvalidArgument, "eps_gt: grid must be >= 1x1");
-  if (truth.size() != estimate.size()) {
-    throw Error(ErrorCode::kInvalidArgument, "eps_gt: models have different image sizes");
-  }
-  double sum = 0;
-  int n = 0;
-  for (int j = 0; j < rows; ++j) {
-    for (int i = 0; i < cols; ++i) {
-      const Eigen::Vector2d p((i + 0.5) * truth.width() / cols - 0.5,
-                              (j + 0.5) * truth.height() / rows - 0.5);
-      Eigen::Vector2d xn, q;
-      if (!truth.unproject(p, &xn)) continue;
-      if (!estimate.project(Eigen::Vector3d(xn.x(), xn.y(), 1.0), &q)) continue;
-      sum += (q - p).norm();
-      ++n;
-    }
-  }
-  return n > 0 ? sum / n : std::numeric_limits<double>::quiet_NaN();
-}
+namespace {
 
-double ground_truth_error_edges(const CameraModel& truth, const CameraModel& estimate, int cols, int rows,
-                                bool rms) {
-  if (cols < 2 || rows < 2) throw Error(ErrorCode::kInvalidArgument, "eps_gt: edge grid must be >= 2x2");
+// Mean (or RMS) over a cols x rows grid, placed by pixel(i, j), of the distance between a pixel
+// and the estimated projection of its true ray; NaN if no grid ray exists.
+template <class Pixel>
+double grid_error(const CameraModel& truth, const CameraModel& estimate, int cols, int rows, bool rms, Pixel pixel) {
   if (truth.size() != estimate.size()) {
     throw Error(ErrorCode::kInvalidArgument, "eps_gt: models have different image sizes");
   }
@@ -59,7 +40,7 @@ double ground_truth_error_edges(const CameraModel& truth, const CameraModel& est
   int n = 0;
   for (int j = 0; j < rows; ++j) {
     for (int i = 0; i < cols; ++i) {
-      const Eigen::Vector2d p(i * (truth.width() - 1.0) / (cols - 1), j * (truth.height() - 1.0) / (rows - 1));
+      const Eigen::Vector2d p = pixel(i, j);
       Eigen::Vector2d xn, q;
       if (!truth.unproject(p, &xn)) continue;
       if (!estimate.project(Eigen::Vector3d(xn.x(), xn.y(), 1.0), &q)) continue;
@@ -69,6 +50,23 @@ double ground_truth_error_edges(const CameraModel& truth, const CameraModel& est
   }
   if (n == 0) return std::numeric_limits<double>::quiet_NaN();
   return rms ? std::sqrt(sum / n) : sum / n;
+}
+
+}  // namespace
+
+double ground_truth_error(const CameraModel& truth, const CameraModel& estimate, int cols, int rows) {
+  if (cols < 1 || rows < 1) throw Error(ErrorCode::kInvalidArgument, "eps_gt: grid must be >= 1x1");
+  return grid_error(truth, estimate, cols, rows, false, [&](int i, int j) {
+    return Eigen::Vector2d((i + 0.5) * truth.width() / cols - 0.5, (j + 0.5) * truth.height() / rows - 0.5);
+  });
+}
+
+double ground_truth_error_edges(const CameraModel& truth, const CameraModel& estimate, int cols, int rows,
+                                bool rms) {
+  if (cols < 2 || rows < 2) throw Error(ErrorCode::kInvalidArgument, "eps_gt: edge grid must be >= 2x2");
+  return grid_error(truth, estimate, cols, rows, rms, [&](int i, int j) {
+    return Eigen::Vector2d(i * (truth.width() - 1.0) / (cols - 1), j * (truth.height() - 1.0) / (rows - 1));
+  });
 }
 
 }  // namespace posecal
