@@ -67,6 +67,12 @@ bool EngineOptions::is_valid(std::string* error) const {
 #undef POSECAL_KEY
   if (!measured_convergence && !prospective_convergence)
     return fail("measured_convergence and prospective_convergence cannot both be off");
+  if (method != Method::kPosecal && method != Method::kPaper && method != Method::kReferenceStd)
+    return fail("unknown method");
+  if (accuracy_px && method != Method::kPosecal)
+    return fail(std::string("accuracy_px cannot be honoured by method \"") +
+                (method == Method::kPaper ? "paper" : "reference-std") +
+                "\", which stops on the ratio test; use method \"posecal\"");
   if (bootstrap_min_corners < 0) return fail("bootstrap_min_corners must be >= 0");
   if (!(bootstrap_max_relative_std > 0 && bootstrap_max_relative_std <= 1)) {
     return fail("bootstrap_max_relative_std must be in (0, 1]");
@@ -79,6 +85,29 @@ bool EngineOptions::is_valid(std::string* error) const {
   if (!posegen.is_valid(&why)) return fail("posegen: " + why);
   if (!calibration.is_valid(&why)) return fail("calibration: " + why);
   return true;
+}
+
+void EngineOptions::set_method(Method m) {
+  const EngineOptions d;  // posecal's defaults
+  method = m;
+  pose_candidates = d.pose_candidates;
+  prospective_convergence = d.prospective_convergence;
+  measured_convergence = d.measured_convergence;
+  convergence_measure = d.convergence_measure;
+  view_candidates = d.view_candidates;
+  view_must_serve_target = d.view_must_serve_target;
+  candidate_score = d.candidate_score;
+  posegen.pinhole_fill = d.posegen.pinhole_fill;
+  if (m == Method::kPosecal) return;
+  // The paper's rules: one generated pose per target, the measured ratio test only, the
+  // reference implementation's board distance (about 0.53-0.6 of the view).
+  pose_candidates = 1;
+  prospective_convergence = false;
+  measured_convergence = true;
+  convergence_measure = m == Method::kReferenceStd ? ConvergenceMeasure::kStd : ConvergenceMeasure::kVariance;
+  view_candidates = 0;
+  view_must_serve_target = false;
+  posegen.pinhole_fill = 0.6;
 }
 
 CalibrationEngine::Impl::Impl(cv::Size s, const EngineOptions& o)
@@ -212,7 +241,7 @@ void CalibrationEngine::Impl::bootstrap_step(const Detection& det, const FrameRe
     // Regenerate the target only when the focal length moved noticeably, so the overlay
     // does not jitter with every slightly better bootstrap.
     if (first || !target || std::abs(estimate.fx() - f_before) > 0.02 * f_before) {
-      set_target(posegen.initial_pose(0, estimate), -1);
+      set_target(posegen.initial_pose(0, estimate, initial_retries), -1);
     }
   }
 }
@@ -245,13 +274,21 @@ void CalibrationEngine::Impl::capture_step(const Detection& det, FrameReport* r)
   } else if (r->pose_reached && r->still && r->corners < r->corners_required &&
              ++crowded_frames >= kCrowdedFrames) {
     move_target_back(r->corners);
-  } else if (state == EngineState::kRefining && opt.target_timeout_frames > 0 &&
+  } else if (opt.target_timeout_frames > 0 &&
              frame_index - target_since_frame > static_cast<uint64_t>(opt.target_timeout_frames)) {
     EngineEvent e{EngineEvent::Kind::kTargetSkipped};
-    e.parameter = estimate.param_names()[target_param];
     e.message = "not reached within " + std::to_string(opt.target_timeout_frames) + " frames";
-    emit(e);
-    set_target(next_pose(target_param), target_param);
+    if (state == EngineState::kRefining) {
+      e.parameter = estimate.param_names()[target_param];
+      emit(e);
+      set_target(next_pose(target_param), target_param);
+    } else {
+      // An initial pose nobody reaches would strand the session: offer it again, the tilted
+      // one tilted less each time (PoseGenerator::initial_pose).
+      const int index = state == EngineState::kInitialPose1 ? 0 : 1;
+      emit(e);
+      set_target(posegen.initial_pose(index, estimate, ++initial_retries), -1);
+    }
   }
 }
 
@@ -283,6 +320,7 @@ void CalibrationEngine::Impl::capture(const Detection& det) {
 
   if (keyframes.size() == 1) {
     set_state(EngineState::kInitialPose2);
+    initial_retries = 0;
     set_target(posegen.initial_pose(1, estimate), -1);
     return;
   }

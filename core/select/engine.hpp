@@ -36,6 +36,16 @@ enum class EngineState {
 const char* engine_state_name(EngineState s);
 
 struct EngineOptions {
+  // A named method: the members it sets (pose_candidates, prospective_convergence,
+  // measured_convergence, convergence_measure, view_candidates, view_must_serve_target,
+  // candidate_score, posegen.pinhole_fill) come from it; set_method() applies it, and members set
+  // afterwards override it (the session key "method" is applied before every other key).
+  //   kPosecal       posecal's engine, these members' defaults below (docs/pose-selection.md)
+  //   kPaper         the paper's method: one rule pose per target, the variance ratio test on
+  //                  captured keyframes only, boards at the reference code's distance
+  //   kReferenceStd  kPaper with the reference implementation's std ratio test
+  enum class Method { kPosecal, kPaper, kReferenceStd } method = Method::kPosecal;
+  void set_method(Method m);
   BoardSpec board;                     // the board
   double convergence_threshold = 0.1;    // ratio test: relative variance reduction (paper §4.1)
   int max_keyframes = 20;                // cap; reaching it ends the run as not converged
@@ -43,7 +53,9 @@ struct EngineOptions {
   double still_motion_px = 1.5;          // mean corner motion between frames (paper §4.3)
   double jaccard_threshold = 0.8;        // target reached (paper §4.2)
   bool robot = false;                    // robot mode: the host reports "pose reached"
-  int target_timeout_frames = 0;         // > 0: skip a refinement target after this many frames
+  // > 0: skip a refinement target after this many frames; an initial pose is offered anew (the
+  // tilted one less tilted, PoseGenerator::initial_pose)
+  int target_timeout_frames = 0;
   int bootstrap_min_corners = 0;         // 0: half the board's corners (reference implementation)
   // A bootstrap is accepted only if its focal length is determined to this relative standard
   // deviation (at the measured noise, at least 0.1 px); among accepted ones the lowest residual

@@ -31,10 +31,15 @@ struct CalibrationEngine::Impl {
   CameraModel estimate;  // current intrinsics
   double best_bootstrap_rms = std::numeric_limits<double>::infinity();  // relative std of f
   bool have_bootstrap = false;
+  // Distinct views seen while no single one could bootstrap (most recent last), fitted jointly;
+  // and what the operator should change (empty: nothing known yet).
+  std::vector<Observation> bootstrap_views;
+  std::string bootstrap_hint;
   std::optional<TargetPose> target;
   int target_param = -1;
   uint64_t target_serial = 0;
   uint64_t target_since_frame = 0;
+  int initial_retries = 0;  // initial poses offered again after a timeout (this initial pose)
 
   std::vector<Observation> keyframes;
   std::vector<int> keyframe_target;  // parameter each keyframe was captured for (-1: init)
@@ -82,6 +87,10 @@ struct CalibrationEngine::Impl {
   // --- bootstrap.cpp ---
   int bootstrap_min_corners() const;
   bool try_bootstrap(const Detection& det);
+  // Fits the focal lengths to `views` (principal point at the centre, no distortion); true and
+  // the estimate replaced if it determines f and beats the best so far.
+  bool fit_bootstrap(const std::vector<Observation>& views);
+  bool remember_bootstrap_view(const Observation& view);
 
   // --- convergence.cpp ---
   // Relative reduction as the ratio test measures it (0 if there was no variance).

@@ -13,8 +13,8 @@ std::string CalibrationEngine::Impl::guidance_text(const FrameReport& r, const s
     case EngineState::kFailed: return "calibration stopped: " + failure;
     case EngineState::kWaitingForBoard: return "show the calibration board to the camera";
     case EngineState::kBootstrapping:
-      return r.corners < bootstrap_min_corners() ? "show more of the board"
-                                                 : "tilt the board slightly so the focal length can be estimated";
+      if (r.corners < bootstrap_min_corners()) return "show more of the board";
+      return bootstrap_hint.empty() ? "tilt the board slightly so the focal length can be estimated" : bootstrap_hint;
     default: break;
   }
   if (r.captured) return "captured keyframe " + std::to_string(keyframes.size());

@@ -129,9 +129,12 @@ TargetPose PoseGenerator::pinhole_pose(int axis, double tilt_deg, double shift_p
   return out;
 }
 
-TargetPose PoseGenerator::initial_pose(int index, const CameraModel& estimate) const {
+TargetPose PoseGenerator::initial_pose(int index, const CameraModel& estimate, int retry) const {
+  if (retry < 0) throw Error(ErrorCode::kInvalidArgument, "initial_pose: retry must be >= 0");
   if (index == 0) {
-    TargetPose p = pinhole_pose(0, options_.init_tilt_deg, 0.0, estimate);
+    const double tilt = retry == 0 ? options_.init_tilt_deg : std::max(std::min(25.0, options_.init_tilt_deg),
+                                                                       options_.init_tilt_deg - 10.0 * retry);
+    TargetPose p = pinhole_pose(0, tilt, 0.0, estimate);
     p.kind = TargetKind::kInitTilted;
     return p;
   }

@@ -63,7 +63,9 @@ class PoseGenerator {
 
   // Initialisation (paper §3.4): first a pose tilted init_tilt_deg about x (with the roll),
   // then the board parallel to the image plane covering the view.
-  TargetPose initial_pose(int index, const CameraModel& estimate) const;
+  // `retry` > 0: the pose offered after the first `retry` were not reached in time; the tilted
+  // pose is tilted 10 degrees less per retry (down to 25 degrees), the other is the same.
+  TargetPose initial_pose(int index, const CameraModel& estimate, int retry = 0) const;
   // Pose for one intrinsic (index into fx fy cx cy k1 k2 p1 p2 k3): C_K poses for 0..3, C_Delta
   // poses for the distortion coefficients (falling back to a C_K pose, noted, when no distorted
   // region is left). Advances the per-axis subdivision sequences and the distortion mask.

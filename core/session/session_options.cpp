@@ -101,6 +101,13 @@ template <class T>
 SessionKeyValue get_Choice(const char* choices, T m) {
   return split_choices(choices).at(static_cast<size_t>(m));
 }
+// "method": a preset over several engine members (EngineOptions::set_method).
+void set_Choice(const char* key, double lo, double hi, const char* choices, EngineOptions& m, const SessionKeyValue& v) {
+  EngineOptions::Method method = EngineOptions::Method::kPosecal;
+  set_Choice(key, lo, hi, choices, method, v);
+  m.set_method(method);
+}
+SessionKeyValue get_Choice(const char* choices, const EngineOptions& m) { return get_Choice(choices, m.method); }
 
 void set_Text(const char* key, double, double, const char*, BoardSpec& m, const SessionKeyValue& v) {
   m = BoardSpec::parse(value_as<std::string>(key, v, "a string"));

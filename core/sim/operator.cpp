@@ -30,8 +30,12 @@ bool OperatorOptions::is_valid(std::string* error) const {
   };
   if (!(rotation_error_deg >= 0 && rotation_error_deg < 45)) return fail("rotation error must be in [0, 45) deg");
   if (!(translation_error_fraction >= 0 && translation_error_fraction < 0.5)) return fail("translation error in [0, 0.5)");
-  if (move_frames < 1 || move_frames > 100) return fail("move_frames must be in [1, 100]");
+  if (move_frames < 0 || move_frames > 100) return fail("move_frames must be in [0, 100]");
+  if (bootstrap != BootstrapBoards::kFollowsGuidance && bootstrap != BootstrapBoards::kFixedTilt &&
+      bootstrap != BootstrapBoards::kAnyBoard)
+    return fail("unknown bootstrap behaviour");
   if (hold_frames < 2 || hold_frames > 100) return fail("hold_frames must be in [2, 100]");
+  if (move_frames + hold_frames < 3) return fail("an attempt needs at least 3 frames");
   if (!(jitter_px >= 0 && jitter_px < 1.5)) return fail("jitter must be in [0, 1.5) px");
   if (max_tries < 1 || max_tries > 1000) return fail("max_tries must be in [1, 1000]");
   return true;
@@ -59,23 +63,84 @@ Pose SimulatedOperator::perturb(const Pose& p) {
   return Pose::from_rotation(R, c2 - R * board_centre(board_));
 }
 
-Pose SimulatedOperator::bootstrap_goal() {
-  // A person first shows the board roughly fronto-parallel near the centre (paper §3.4).
-  std::normal_distribution<double> N(0.0, 1.0);
-  std::uniform_real_distribution<double> U(-1.0, 1.0);
-  const double frac = 0.5 + 0.1 * U(rng_);
-  const double depth = truth_.fx() * board_.board_size_m().width / (frac * truth_.width());
-  const Eigen::Vector2d px(truth_.cx() + 0.1 * truth_.width() * U(rng_), truth_.cy() + 0.1 * truth_.height() * U(rng_));
+const char* const kOperatorPresetNames = "approach, hold-only, sloppy, careless, robot";
+
+OperatorOptions operator_preset(const std::string& name) {
+  OperatorOptions o;
+  if (name == "approach") return o;
+  if (name == "robot") {
+    o.kind = OperatorKind::kRobot;
+    return o;
+  }
+  if (name == "sloppy") {
+    o.rotation_error_deg = 4.0;
+    o.translation_error_fraction = 0.04;
+    return o;
+  }
+  if (name == "hold-only" || name == "careless") {
+    o.move_frames = 0;
+    o.hold_frames = 3;
+    o.bootstrap = name == "careless" ? BootstrapBoards::kAnyBoard : BootstrapBoards::kFixedTilt;
+    return o;
+  }
+  throw Error(ErrorCode::kInvalidArgument,
+              "unknown operator '" + name + "' (" + kOperatorPresetNames + ")");
+}
+
+// The board, rotated by R about its centre, with its width `width_fraction` of the image's and
+// its centre seen at pixel centre_px.
+Pose SimulatedOperator::board_at(double width_fraction, const Eigen::Vector2d& centre_px, const Eigen::Matrix3d& R) const {
+  const double depth = truth_.fx() * board_.board_size_m().width / (width_fraction * truth_.width());
   Eigen::Vector2d xn;
-  if (!truth_.unproject(px, &xn)) xn.setZero();
-  // Roughly fronto-parallel at first; each further attempt follows the guidance "tilt the board"
-  // a little more (10 degrees more per attempt, up to 50), about a random in-plane axis.
-  const double tilt = std::min(50.0, 10.0 * (1 + tries_)) * kPi / 180.0 * std::abs(N(rng_));
-  const double axis = kPi * U(rng_);
-  const Eigen::Matrix3d R = Eigen::AngleAxisd(tilt, Eigen::Vector3d(std::cos(axis), std::sin(axis), 0)).toRotationMatrix() *
-                            small_rotation(0, 0, 5.0 * kPi / 180.0 * N(rng_));
+  if (!truth_.unproject(centre_px, &xn)) xn.setZero();
   const Eigen::Vector3d c(xn.x() * depth, xn.y() * depth, depth);
   return Pose::from_rotation(R, c - R * board_centre(board_));
+}
+
+Pose SimulatedOperator::bootstrap_goal() {
+  std::normal_distribution<double> N(0.0, 1.0);
+  std::uniform_real_distribution<double> U(-1.0, 1.0);
+  const Eigen::Vector2d centre(truth_.cx(), truth_.cy());
+  const Eigen::Vector2d size(truth_.width(), truth_.height());
+  auto tilt_axis = [&]() {
+    const double a = kPi * U(rng_);
+    return Eigen::Vector3d(std::cos(a), std::sin(a), 0);
+  };
+  if (opt_.bootstrap == BootstrapBoards::kFixedTilt) {
+    const double tilt = (17.5 + 7.5 * U(rng_)) * kPi / 180.0;
+    const Eigen::Vector3d axis = tilt_axis();
+    const double dx = U(rng_), dy = U(rng_);
+    return board_at(0.55, centre + 0.1 * Eigen::Vector2d(size.x() * dx, size.y() * dy),
+                    Eigen::AngleAxisd(tilt, axis).toRotationMatrix());
+  }
+  if (opt_.bootstrap == BootstrapBoards::kAnyBoard) {
+    // Drawn until every corner is in the view (the person looks at the screen that far).
+    Pose p;
+    for (int draw = 0; draw < 200; ++draw) {
+      const double frac = 0.6 + 0.3 * U(rng_);
+      const double tilt = 30.0 * (1 + U(rng_)) * kPi / 180.0;
+      const Eigen::Vector3d axis = tilt_axis();
+      const double roll = 15.0 * kPi / 180.0 * N(rng_);
+      const double dx = U(rng_), dy = U(rng_);
+      const Eigen::Matrix3d R = Eigen::AngleAxisd(tilt, axis).toRotationMatrix() * small_rotation(0, 0, roll);
+      p = board_at(frac, centre + 0.5 * (1 - frac) * Eigen::Vector2d(size.x() * dx, size.y() * dy), R);
+      bool in_view = true;
+      for (const auto& q : project_points(truth_, p, board_.corners()))
+        in_view = in_view && q.x >= 0 && q.y >= 0 && q.x <= truth_.width() - 1 && q.y <= truth_.height() - 1;
+      if (in_view) return p;
+    }
+    return p;
+  }
+  // A person first shows the board roughly fronto-parallel near the centre (paper §3.4); each
+  // further attempt follows the guidance "tilt the board" a little more (10 degrees more per
+  // attempt, up to 50), about a random in-plane axis.
+  const double frac = 0.5 + 0.1 * U(rng_);
+  const Eigen::Vector2d px(truth_.cx() + 0.1 * truth_.width() * U(rng_), truth_.cy() + 0.1 * truth_.height() * U(rng_));
+  const double tilt = std::min(50.0, 10.0 * (1 + tries_)) * kPi / 180.0 * std::abs(N(rng_));
+  const Eigen::Vector3d axis = tilt_axis();
+  const Eigen::Matrix3d R = Eigen::AngleAxisd(tilt, axis).toRotationMatrix() *
+                            small_rotation(0, 0, 5.0 * kPi / 180.0 * N(rng_));
+  return board_at(frac, px, R);
 }
 
 Pose SimulatedOperator::attempt_goal(const GuidanceInfo& g) {
@@ -122,7 +187,8 @@ Pose SimulatedOperator::next_pose(const GuidanceInfo& g) {
   };
   if (!g.finished) {
     if (g.target_serial != serial_) {
-      if (in_attempt_ && g.keyframes > keyframes_seen_) ++stats_[kind_].reached;
+      // A target was reached when it gave a keyframe; the bootstrap, when a target appeared.
+      if (in_attempt_ && (g.keyframes > keyframes_seen_ || (kind_ == "bootstrap" && g.has_target))) ++stats_[kind_].reached;
       serial_ = g.target_serial;
       kind_ = g.has_target ? target_kind_name(g.target_kind) : "bootstrap";
       tries_ = 0;

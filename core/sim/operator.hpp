@@ -16,16 +16,42 @@ namespace posecal {
 
 enum class OperatorKind { kPerson, kRobot };
 
+// What a person shows before the engine has a target (the bootstrap).
+enum class BootstrapBoards {
+  // Roughly fronto-parallel near the centre, then follows the guidance "tilt the board": each
+  // further attempt about 10 degrees more (paper §3.4).
+  kFollowsGuidance,
+  // Does not read the guidance: centred (within 10% of the view), 55% of the image width,
+  // tilted 10-25 degrees about a random axis, every attempt.
+  kFixedTilt,
+  // Does not read the guidance either: any board that shows all its corners, 30-90% of the
+  // width, tilted 0-60 degrees about a random axis, anywhere in the view.
+  kAnyBoard,
+};
+
 struct OperatorOptions {
   OperatorKind kind = OperatorKind::kPerson;
+  BootstrapBoards bootstrap = BootstrapBoards::kFollowsGuidance;
   double rotation_error_deg = 2.0;          // N(0, 2 deg) per axis
   double translation_error_fraction = 0.02; // N(0, 2% of the distance) per axis
-  int move_frames = 3;                      // frames spent moving to a new attempt
+  int move_frames = 3;                      // frames spent moving to a new attempt (0: appears there)
   int hold_frames = 4;                      // frames held still per attempt
   double jitter_px = 0.2;                   // sub-pixel hand tremor while holding
   int max_tries = 5;                        // attempts per target before giving up
   bool is_valid(std::string* error) const;
 };
+
+// The operators of the benchmark's worlds (docs/benchmarks.md), by name:
+//   "approach"  a person who approaches each target over 3 frames and holds it 4 (the default),
+//   "hold-only" one who is simply there and holds exactly 3 frames per try, and bootstraps with
+//               a centred board tilted 10-25 degrees whatever the guidance says (kFixedTilt),
+//   "sloppy"    "approach" with twice the alignment error (4 degrees, 4% of the distance),
+//   "careless"  "hold-only" who shows any board while bootstrapping (kAnyBoard),
+//   "robot"     a robot at the 6-DoF target (2 degrees, 2%).
+// Throws Error(kInvalidArgument) naming the choices for an unknown name.
+OperatorOptions operator_preset(const std::string& name);
+extern const char* const kOperatorPresetNames;  // "approach, hold-only, sloppy, careless, robot"
+
 
 // Per target kind: how often an attempt ended in a capture.
 struct AttemptStats {
@@ -47,6 +73,7 @@ class SimulatedOperator {
  private:
   Pose attempt_goal(const GuidanceInfo& g);
   Pose bootstrap_goal();
+  Pose board_at(double width_fraction, const Eigen::Vector2d& centre_px, const Eigen::Matrix3d& R) const;
   Pose perturb(const Pose& p);
 
   CameraModel truth_;

@@ -161,9 +161,9 @@ SimCameraOptions sim_options_from_uri(const Uri& uri, const BoardSpec& board) {
     throw Error(ErrorCode::kInvalidArgument, "camera URI '" + uri.text + "': use sim://?key=value options");
   }
   for (const auto& [k, v] : uri.query) {
-    if (k != "model" && k != "seed" && k != "operator" && k != "noise" && k != "blur") {
+    if (k != "model" && k != "seed" && k != "operator" && k != "noise" && k != "blur" && k != "renderer") {
       throw Error(ErrorCode::kInvalidArgument, "camera URI '" + uri.text + "': unknown option '" + k +
-                                                   "' (model, seed, operator, noise, blur)");
+                                                   "' (model, seed, operator, noise, blur, renderer)");
     }
   }
   SimCameraOptions o;
@@ -175,14 +175,20 @@ SimCameraOptions sim_options_from_uri(const Uri& uri, const BoardSpec& board) {
     o.truth = sample_camera(c525_reference_model(), 0.1, o.seed);
   }
   if (uri.query.count("operator")) {
+    // "person" is the default person ("approach"); the other names are operator presets.
     const std::string& k = uri.query.at("operator");
-    if (k == "person") {
-      o.op.kind = OperatorKind::kPerson;
-    } else if (k == "robot") {
-      o.op.kind = OperatorKind::kRobot;
-    } else {
-      throw Error(ErrorCode::kInvalidArgument, "camera URI '" + uri.text + "': operator must be person or robot");
+    try {
+      o.op = operator_preset(k == "person" ? "approach" : k);
+    } catch (const Error&) {
+      throw Error(ErrorCode::kInvalidArgument, "camera URI '" + uri.text + "': operator must be person or one of " +
+                                                   kOperatorPresetNames);
     }
+  }
+  if (uri.query.count("renderer")) {
+    const std::string& r = uri.query.at("renderer");
+    if (r != "raycast" && r != "warp")
+      throw Error(ErrorCode::kInvalidArgument, "camera URI '" + uri.text + "': renderer must be raycast or warp");
+    o.render.renderer = r == "warp" ? Renderer::kWarp : Renderer::kRayCast;
   }
   o.render.noise_sigma = uri.query.count("noise") ? parse_number(uri, "noise", 0, 50) : 2.0;
   o.render.blur_sigma_px = uri.query.count("blur") ? parse_number(uri, "blur", 0, 10) : 0.8;

@@ -21,8 +21,9 @@ struct SimCameraOptions {
   uint64_t seed = 1;
 };
 
-// Parses sim://?model=FILE&seed=N&operator=person|robot&noise=G&blur=PX into options (every
-// parameter optional; default camera sampled around the C525 with 10% std).
+// Parses sim://?model=FILE&seed=N&operator=NAME&noise=G&blur=PX&renderer=raycast|warp into
+// options (every parameter optional; default camera sampled around the C525 with 10% std;
+// operator: person (= approach) or an operator_preset name).
 SimCameraOptions sim_options_from_uri(const Uri& uri, const BoardSpec& board);
 
 class SimCamera;

@@ -18,8 +18,27 @@
 
 namespace posecal {
 
+// Two rendering paths that differ in how they sample and filter, so that a detector (or an engine
+// tuned on its results) that suits one of them is exposed by the other (docs/benchmarks.md).
+enum class Renderer {
+  // Ray casting: every one of n x n samples per pixel is unprojected through the true lens and
+  // meets the board; the texture is mip-mapped and sampled bilinearly, samples are box-averaged;
+  // Gaussian optics blur and additive Gaussian noise, in grey levels.
+  kRayCast,
+  // Warping: the board is first drawn through its homography into an ideal pinhole image at
+  // twice the focal length (warpPerspective, bilinear; a tent filter there stands in for the
+  // pixel's area), which is then resampled at the pixel centres through the true lens (bicubic,
+  // no integration over the lens' local stretch of the pixel); the optics is a defocus disc of
+  // the same second moment as blur_sigma_px, applied in linear radiance; noise is signal
+  // dependent (shot and read noise, noise_sigma at mid grey), and a 1.6 tone curve maps radiance
+  // to grey levels (paper_white, ink_black and background stay the grey levels they name).
+  // supersample is not used.
+  kWarp,
+};
+
 struct RenderOptions {
-  int supersample = 2;               // n x n samples per pixel
+  Renderer renderer = Renderer::kRayCast;
+  int supersample = 2;               // n x n samples per pixel (kRayCast)
   double blur_sigma_px = 0.0;        // Gaussian optics blur, output pixels
   double noise_sigma = 0.0;          // additive Gaussian sensor noise, grey levels
   double paper_white = 235.0;        // grey level of the board's white at exposure 1

@@ -198,6 +198,9 @@ typedef struct posecal_image {
 
 /* Opens a session on a camera (URI as listed by posecal_list_cameras, or "sim://?...",
  * "images://DIR", "external"). config_json: NULL for defaults, or an object with optional keys
+ *   "method": "posecal" (default: posecal's engine) | "paper" (the paper's exact method: one
+ *   rule pose per target, the variance ratio test) | "reference-std" (the paper's with the
+ *   reference implementation's std test); a preset that the other keys override,
  *   "target": spec string (default "charuco:9x6:0.028:0.0182:DICT_4X4_50"),
  *   "operator": "person" | "robot"   (robot: the host reports poses reached),
  *   "convergence_threshold" (0.1), "max_keyframes" (20), "jaccard_threshold" (0.8),
@@ -216,7 +219,8 @@ typedef struct posecal_image {
  *   "accuracy_px" (unset; a number in [0.001, 100]: the session converges when the expected
  *   projection error, "expected_error_px" of the status and result, is at most this, and ends
  *   as not converged at max_keyframes with a reason naming the error reached and the parameter
- *   that holds it back; null unsets it)
+ *   that holds it back; null unsets it; with method "paper" or "reference-std", which stop on
+ *   the ratio test, POSECAL_E_INVALID_ARGUMENT)
  * An unknown key is POSECAL_E_INVALID_ARGUMENT. Opening a camera may block up to ~3 s. The
  * camera starts streaming at the first posecal_session_step. */
 POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char* camera_uri,

@@ -1,22 +1,36 @@
 // Pose selection vs random poses, side by side on the same sampled cameras (docs/benchmarks.md).
 //
-//   build/bin/bench_pose_selection [--cameras N] [--camera c525|industrial|tele] [--threads T]
-//       [--config default|default-std|paper|std] [--distortion-tilt DEG] [--score variance|projection]
-//       [--accuracy-px PX] [--csv FILE]
-//       [--figure3 FILE.png]
+//   build/bin/bench_pose_selection [--cameras N] [--camera c525|industrial|tele|longfocal|vga]
+//       [--threads T] [--config NAME[,NAME...]] [--distortion-tilt DEG]
+//       [--score variance|projection] [--accuracy-px PX] [--csv FILE] [--figure3 FILE.png]
+//       [--world camera=C,operator=O,noise=N,renderer=R]... [--worlds standard]
+//       [--seeds tune|report|FIRST-LAST] [--robot] [--compactness]
 //
 // Per camera (seed i): the camera is sampled around the reference with 10% std per parameter
-// (paper §5.1); pose selection runs closed-loop with a simulated person and a simulated robot;
+// (paper §5.1); pose selection runs closed-loop with a simulated person (and a simulated robot);
 // the baselines calibrate with cv::calibrateCamera from 10 and 20 random well-spread poses
 // (board fully visible, tilt up to 45 deg) rendered by the same synthetic camera with the same
-// noise (2 grey levels, blur 0.8 px). Every method is scored on the same fixed 50-frame test set
-// (eps_test) and against the ground truth (eps_gt).
+// noise. Every method is scored on the same fixed 50-frame test set (eps_test) and against the
+// ground truth (eps_gt).
+//
+// Without --world/--worlds: one world, the camera family of --camera, today's person
+// ("approach"), noise 2 grey levels and blur 0.8 px, the ray-casting renderer, seeds 1..N, and
+// the robot; the tables of docs/benchmarks.md up to 2026-12-02.
+// With worlds: each world is a camera family, an operator (sim/operator.hpp presets), a noise
+// level and a renderer (sim/synthetic.hpp); every configuration of --config runs on the same
+// cameras and operator draws, so methods compare paired; eps_gt is the edge-to-edge grid's mean
+// (corners included). Seeds: "tune" = 1..30 (what the engine may be tuned on), "report" =
+// 1001..1100 (what docs/benchmarks.md reports; never tuned on). --compactness runs the paper's
+// compactness test (§5.3) on every session's keyframes against its test set.
 #include <algorithm>
 #include <atomic>
 #include <cmath>
 #include <cstdio>
 #include <cstring>
 #include <map>
+#include <random>
+#include <sstream>
+#include <tuple>
 #include <mutex>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgcodecs.hpp>
@@ -25,6 +39,7 @@
 #include <thread>
 #include <vector>
 
+#include "calib/compactness.hpp"
 #include "calib/metrics.hpp"
 #include "session/session.hpp"
 #include "sim/sim_camera.hpp"
@@ -40,10 +55,12 @@ struct Options {
   int cameras = 20;
   std::string camera = "c525";
   int threads = 2;
-  std::string config = "default";  // default | default-std | paper | std
+  std::vector<std::string> configs = {"default"};  // default | default-std | paper | std | ...
   std::string csv;
   std::string figure3;
   int figure3_cameras = 20;
+  int first_seed = 1;
+  bool robot = true;
 };
 
 CameraModel reference_camera(const std::string& name) {
@@ -56,13 +73,103 @@ CameraModel reference_camera(const std::string& name) {
     // Long focal length, low distortion (50 mm lens on a 1/1.8" 1600x1200 sensor).
     return CameraModel::opencv5(1600, 1200, 11300, 11300, 799.5, 599.5, {-0.02, 0.05, 0.0, 0.0, 0.0});
   }
-  throw Error(ErrorCode::kInvalidArgument, "unknown camera '" + name + "' (c525, industrial, tele)");
+  if (name == "longfocal") {
+    // 1920x1200, 25 mm lens on 5.86 um pixels (f ~ 4270 px; the issue's f ~ 4000-4200).
+    return CameraModel::opencv5(1920, 1200, 4100, 4100, 962.0, 597.0, {-0.05, 0.3, 0.0002, -0.0003, 0.0});
+  }
+  if (name == "vga") {
+    // 640x480 webcam with pincushion distortion (k1 > 0).
+    return CameraModel::opencv5(640, 480, 610, 612, 322.0, 238.5, {0.12, -0.25, 0.001, -0.0015, 0.1});
+  }
+  throw Error(ErrorCode::kInvalidArgument, "unknown camera '" + name + "' (c525, industrial, tele, longfocal, vga)");
 }
 
 BoardSpec board_for(const std::string& camera) {
   // A board that fills a useful part of the view at a workable distance.
   if (camera == "tele") return BoardSpec::parse("charuco:9x6:0.028:0.0182:DICT_4X4_50");
   return BoardSpec{};
+}
+
+// One world of the benchmark: what the engine is tested against.
+struct World {
+  std::string camera = "c525";
+  std::string op = "approach";   // an operator_preset name
+  std::string noise = "std";     // clean | std | noisy | webcam
+  Renderer renderer = Renderer::kRayCast;
+  std::string name() const {
+    return camera + "/" + op + "/" + noise + "/" + (renderer == Renderer::kWarp ? "warp" : "raycast");
+  }
+};
+
+const char* const kNoiseLevels = "clean, std, noisy, webcam";
+
+// Noise levels: grey-level noise, optics blur, contrast. "webcam" is tuned so that eps_res is
+// about 0.3 px as on real webcams (docs/benchmarks.md).
+void apply_noise(const std::string& level, RenderOptions* ro) {
+  if (level == "clean") {
+    ro->noise_sigma = 0.5;
+    ro->blur_sigma_px = 0.5;
+  } else if (level == "std") {
+    ro->noise_sigma = 2.0;
+    ro->blur_sigma_px = 0.8;
+  } else if (level == "noisy") {
+    ro->noise_sigma = 8.0;
+    ro->blur_sigma_px = 1.2;
+  } else if (level == "webcam") {
+    ro->noise_sigma = 10.0;
+    ro->blur_sigma_px = 1.5;
+    ro->paper_white = 190;
+    ro->ink_black = 60;
+  } else {
+    throw Error(ErrorCode::kInvalidArgument, "unknown noise level '" + level + "' (" + kNoiseLevels + ")");
+  }
+}
+
+World parse_world(const std::string& text) {
+  World w;
+  std::stringstream ss(text);
+  std::string item;
+  while (std::getline(ss, item, ',')) {
+    const size_t eq = item.find('=');
+    const std::string k = item.substr(0, eq), v = eq == std::string::npos ? "" : item.substr(eq + 1);
+    if (k == "camera") w.camera = v;
+    else if (k == "operator") w.op = v;
+    else if (k == "noise") w.noise = v;
+    else if (k == "renderer" && (v == "raycast" || v == "warp")) w.renderer = v == "warp" ? Renderer::kWarp : Renderer::kRayCast;
+    else throw Error(ErrorCode::kInvalidArgument, "--world: bad item '" + item + "' (camera=, operator=, noise=, renderer=raycast|warp)");
+  }
+  reference_camera(w.camera);
+  operator_preset(w.op);
+  RenderOptions ro;
+  apply_noise(w.noise, &ro);
+  return w;
+}
+
+// The standard worlds: the base world (C525 family, hold-only person, today's noise, ray
+// casting) and one axis changed at a time.
+std::vector<World> standard_worlds() {
+  std::vector<World> out;
+  const World base{"c525", "hold-only", "std", Renderer::kRayCast};
+  out.push_back(base);
+  for (const char* op : {"approach", "sloppy", "careless"}) {
+    World w = base;
+    w.op = op;
+    out.push_back(w);
+  }
+  for (const char* n : {"clean", "noisy", "webcam"}) {
+    World w = base;
+    w.noise = n;
+    out.push_back(w);
+  }
+  for (const char* c : {"industrial", "longfocal", "vga"}) {
+    World w = base;
+    w.camera = c;
+    out.push_back(w);
+  }
+  World warp = base;
+  warp.renderer = Renderer::kWarp;
+  out.push_back(warp);
+  return out;
 }
 
 struct Run {
@@ -81,18 +188,24 @@ struct Run {
   // eps_gt over the edge-to-edge grid (corners included; mean distance), and the session's own
   // expected_error_px (an RMS over that grid): the stop figure of --accuracy-px.
   double eps_gt_edges = NAN, expected_error_px = NAN, expected_mean_px = NAN, expected_p90_px = NAN;
+  double eps_res = NAN;  // the calibration's residual RMS
+  int bootstrap_frames = -1;  // frames until the engine had a first target (-1: never)
+  // --compactness: keyframes the paper's greedy test keeps for the same eps_test (§5.3).
+  int compact_kept = -1;
+  double compact_eps_test = NAN, compact_eps_test_all = NAN;
   std::map<std::string, AttemptStats> attempts;
 };
 
 struct CameraRuns {
   int seed = 0;
-  Run person, robot, base10, base20;
+  Run person, robot, base10, base20;  // person and robot: the first configuration
+  std::vector<Run> persons;           // the person with every configuration, in --config order
 };
 
-RenderOptions render_options(uint64_t seed) {
+RenderOptions render_options(const World& w, uint64_t seed) {
   RenderOptions ro;
-  ro.noise_sigma = 2.0;
-  ro.blur_sigma_px = 0.8;
+  apply_noise(w.noise, &ro);
+  ro.renderer = w.renderer;
   ro.seed = seed;
   return ro;
 }
@@ -101,19 +214,13 @@ RenderOptions render_options(uint64_t seed) {
 double g_distortion_tilt_deg = -1;
 // --score variance|projection: overrides EngineOptions::candidate_score of any configuration.
 std::string g_score;
-int g_views = 0;  // --views N: EngineOptions::view_candidates
+int g_views = -1;  // --views N (>= 0): EngineOptions::view_candidates
 bool g_serve = false;  // --views-serve-target: EngineOptions::view_must_serve_target
 double g_accuracy_px = 0;  // --accuracy-px PX (> 0): EngineOptions::accuracy_px
+bool g_compactness = false;  // --compactness: run the paper's compactness test on every session
 
 // Engine configurations compared in docs/benchmarks.md.
-void apply_config(const std::string& config, EngineOptions* eo) {
-  if (g_distortion_tilt_deg >= 0) eo->posegen.distortion_tilt_deg = g_distortion_tilt_deg;
-  if (g_score == "variance") eo->candidate_score = EngineOptions::CandidateScore::kParameterVariance;
-  else if (g_score == "projection") eo->candidate_score = EngineOptions::CandidateScore::kProjection;
-  else if (!g_score.empty()) throw Error(ErrorCode::kInvalidArgument, "unknown --score '" + g_score + "' (variance, projection)");
-  eo->view_candidates = g_views;
-  eo->view_must_serve_target = g_serve;
-  if (g_accuracy_px > 0) eo->accuracy_px = g_accuracy_px;
+void apply_named_config(const std::string& config, EngineOptions* eo) {
   if (config == "default") return;
   if (config == "prospective" || config == "prospective-std") {
     // Convergence decided only by the predicted reduction of the best next pose.
@@ -121,21 +228,36 @@ void apply_config(const std::string& config, EngineOptions* eo) {
     if (config == "prospective-std") eo->convergence_measure = EngineOptions::ConvergenceMeasure::kStd;
     return;
   }
+  if (config == "std-views") {
+    // The std ratio test with 300 generic view candidates per target choice (issue 13's better
+    // configuration: `--measure std --views 300`).
+    eo->convergence_measure = EngineOptions::ConvergenceMeasure::kStd;
+    eo->view_candidates = 300;
+    return;
+  }
   if (config == "default-std") {
     // posecal's engine with the reference implementation's std ratio test.
     eo->convergence_measure = EngineOptions::ConvergenceMeasure::kStd;
     return;
   }
-  if (config == "paper" || config == "std") {
-    // The paper's rules: one generated pose per target, measured ratio test only, the reference
-    // implementation's board distance (about 0.53-0.6 of the view).
-    eo->pose_candidates = 1;
-    eo->prospective_convergence = false;
-    eo->posegen.pinhole_fill = 0.6;
-    if (config == "std") eo->convergence_measure = EngineOptions::ConvergenceMeasure::kStd;
-    return;
-  }
-  throw Error(ErrorCode::kInvalidArgument, "unknown --config '" + config + "' (default, default-std, paper, std)");
+  // The session's methods (EngineOptions::set_method): the paper's rules, and with the
+  // reference implementation's std test.
+  if (config == "paper") return eo->set_method(EngineOptions::Method::kPaper);
+  if (config == "std") return eo->set_method(EngineOptions::Method::kReferenceStd);
+  throw Error(ErrorCode::kInvalidArgument,
+              "unknown --config '" + config + "' (default, default-std, std-views, prospective, prospective-std, paper, std)");
+}
+
+// The configuration, then the flags that override any configuration.
+void apply_config(const std::string& config, EngineOptions* eo) {
+  apply_named_config(config, eo);
+  if (g_distortion_tilt_deg >= 0) eo->posegen.distortion_tilt_deg = g_distortion_tilt_deg;
+  if (g_score == "variance") eo->candidate_score = EngineOptions::CandidateScore::kParameterVariance;
+  else if (g_score == "projection") eo->candidate_score = EngineOptions::CandidateScore::kProjection;
+  else if (!g_score.empty()) throw Error(ErrorCode::kInvalidArgument, "unknown --score '" + g_score + "' (variance, projection)");
+  if (g_views >= 0) eo->view_candidates = g_views;
+  if (g_serve) eo->view_must_serve_target = true;
+  if (g_accuracy_px > 0) eo->accuracy_px = g_accuracy_px;
 }
 
 void split_eps_gt(const CameraModel& truth, const CameraModel& estimate, Run* r) {
@@ -156,24 +278,30 @@ double predicted_eps_gt(const CalibrationResult& res) {
   return std::sqrt((projection_gram(res.model, res.fixed, 40, 23) * cov).trace());
 }
 
-Run closed_loop(const CameraModel& truth, const BoardSpec& target, uint64_t seed, OperatorKind kind,
-                const std::string& config, const std::vector<Observation>& test) {
+Run closed_loop(const World& world, const CameraModel& truth, const BoardSpec& target, uint64_t seed,
+                const std::string& op, const std::string& config, const std::vector<Observation>& test) {
   SimCameraOptions so;
   so.truth = truth;
   so.board = target;
-  so.render = render_options(seed);
-  so.op.kind = kind;
+  so.render = render_options(world, seed);
+  so.op = operator_preset(op);
   so.seed = seed;
   EngineOptions eo;
   eo.board = target;
-  eo.robot = kind == OperatorKind::kRobot;
+  eo.robot = so.op.kind == OperatorKind::kRobot;
   apply_config(config, &eo);
   eo.target_timeout_frames = (so.op.move_frames + so.op.hold_frames) * so.op.max_tries + 1;
   auto cam = make_sim_camera(so);
   SimCamera* sim = as_sim_camera(cam.get());
   CalibrationSession session(std::move(cam), eo);
   Run r;
-  for (int f = 0; f < 3000 && !session.finished(); ++f) session.step(1000);
+  for (int f = 0; f < 3000 && !session.finished(); ++f) {
+    session.step(1000);
+    if (session.frames_processed() == 0) continue;
+    const EngineState st = session.engine().state();
+    if (r.bootstrap_frames < 0 && st != EngineState::kWaitingForBoard && st != EngineState::kBootstrapping)
+      r.bootstrap_frames = static_cast<int>(session.frames_processed());
+  }
   const CalibrationEngine& eng = session.engine();
   r.converged = eng.converged();
   r.keyframes = eng.keyframes();
@@ -188,15 +316,22 @@ Run closed_loop(const CameraModel& truth, const BoardSpec& target, uint64_t seed
     r.expected_error_px = eng.expected_error()->rms_px;
     r.expected_mean_px = eng.expected_error()->mean_px;
     r.expected_p90_px = eng.expected_error()->p90_px;
+    r.eps_res = eng.result()->rms_px;
+    if (g_compactness && eng.keyframes() >= 2 && !test.empty()) {
+      const CompactSubset c = greedy_compact_subset(eng.keyframe_observations(), test, truth.size(), eng.options().calibration);
+      r.compact_kept = static_cast<int>(c.keyframes.size());
+      r.compact_eps_test = c.eps_test;
+      r.compact_eps_test_all = c.eps_test_all;
+    }
   }
   r.attempts = sim->op().attempts();
   return r;
 }
 
-Run random_baseline(const CameraModel& truth, const BoardSpec& target, uint64_t seed, int n,
+Run random_baseline(const World& world, const CameraModel& truth, const BoardSpec& target, uint64_t seed, int n,
                     const std::vector<Observation>& test) {
   const Board board(target);
-  SyntheticCamera sc(truth, board, render_options(seed + 1000003));
+  SyntheticCamera sc(truth, board, render_options(world, seed + 1000003));
   ViewSampling vs;
   vs.max_tilt_deg = 45;
   std::vector<std::vector<cv::Point3f>> obj;
@@ -215,7 +350,7 @@ Run random_baseline(const CameraModel& truth, const BoardSpec& target, uint64_t 
   try {
     cv::Mat K, D;
     std::vector<cv::Mat> rv, tv;
-    cv::calibrateCamera(obj, img, truth.size(), K, D, rv, tv);
+    r.eps_res = cv::calibrateCamera(obj, img, truth.size(), K, D, rv, tv);
     std::vector<double> d(D.begin<double>(), D.end<double>());
     const CameraModel m = CameraModel::from_opencv(truth.width(), truth.height(), cv::Matx33d(K.ptr<double>()), d);
     const SimEvaluation ev = evaluate_synthetic(m, truth, test);
@@ -317,7 +452,7 @@ void figure3(const Options& o) {
     for (int cam = 0; cam < o.figure3_cameras; ++cam) {
       const uint64_t seed = 500 + cam;
       const CameraModel truth = sample_camera(ref, 0.1, seed);
-      SyntheticCamera sc(truth, board, render_options(seed));
+      SyntheticCamera sc(truth, board, render_options(World{}, seed));
       PoseGenerator pg(board, truth.size());
       std::vector<Observation> frames;
       std::optional<CalibrationResult> res;
@@ -406,56 +541,28 @@ void figure3(const Options& o) {
   std::printf("written %s\n", o.figure3.c_str());
 }
 
-}  // namespace
-
-int main(int argc, char** argv) {
-  Options o;
-  for (int i = 1; i < argc; ++i) {
-    const std::string a = argv[i];
-    auto next = [&]() -> std::string {
-      if (i + 1 >= argc) {
-        std::fprintf(stderr, "%s needs a value\n", a.c_str());
-        std::exit(1);
-      }
-      return argv[++i];
-    };
-    if (a == "--cameras") o.cameras = std::stoi(next());
-    else if (a == "--camera") o.camera = next();
-    else if (a == "--threads") o.threads = std::stoi(next());
-    else if (a == "--config") o.config = next();
-    else if (a == "--distortion-tilt") g_distortion_tilt_deg = std::stod(next());
-    else if (a == "--score") g_score = next();
-    else if (a == "--views") g_views = std::stoi(next());
-    else if (a == "--views-serve-target") g_serve = true;
-    else if (a == "--accuracy-px") g_accuracy_px = std::stod(next());
-    else if (a == "--csv") o.csv = next();
-    else if (a == "--figure3") o.figure3 = next();
-    else if (a == "--figure3-cameras") o.figure3_cameras = std::stoi(next());
-    else {
-      std::fprintf(stderr, "unknown option %s\n", a.c_str());
-      return 1;
-    }
-  }
-  if (!o.figure3.empty()) {
-    figure3(o);
-    return 0;
-  }
-  const CameraModel ref = reference_camera(o.camera);
-  const BoardSpec target = board_for(o.camera);
+// The runs of one world: every camera of the seed range, the person with every configuration
+// (and the robot with the first), and both random baselines.
+std::vector<CameraRuns> run_world(const World& world, const Options& o, bool quiet) {
+  const CameraModel ref = reference_camera(world.camera);
+  const BoardSpec target = board_for(world.camera);
   std::vector<CameraRuns> runs(o.cameras);
   std::atomic<int> next{0};
   std::mutex print;
   auto worker = [&]() {
     for (int i = next++; i < o.cameras; i = next++) {
       CameraRuns& cr = runs[i];
-      cr.seed = i + 1;
+      cr.seed = o.first_seed + i;
       const CameraModel truth = sample_camera(ref, 0.1, cr.seed);
-      SyntheticCamera test_cam(truth, Board(target), render_options(cr.seed + 7777));
+      SyntheticCamera test_cam(truth, Board(target), render_options(world, cr.seed + 7777));
       const std::vector<Observation> test = render_test_set(test_cam);
-      cr.person = closed_loop(truth, target, cr.seed, OperatorKind::kPerson, o.config, test);
-      cr.robot = closed_loop(truth, target, cr.seed, OperatorKind::kRobot, o.config, test);
-      cr.base10 = random_baseline(truth, target, cr.seed, 10, test);
-      cr.base20 = random_baseline(truth, target, cr.seed, 20, test);
+      for (const std::string& config : o.configs)
+        cr.persons.push_back(closed_loop(world, truth, target, cr.seed, world.op, config, test));
+      cr.person = cr.persons.front();
+      if (o.robot) cr.robot = closed_loop(world, truth, target, cr.seed, "robot", o.configs.front(), test);
+      cr.base10 = random_baseline(world, truth, target, cr.seed, 10, test);
+      cr.base20 = random_baseline(world, truth, target, cr.seed, 20, test);
+      if (quiet) continue;
       std::lock_guard<std::mutex> lock(print);
       std::fprintf(stderr, "camera %2d: person %s kf %2d gt %.3f | robot %s kf %2d gt %.3f | rnd10 gt %.3f | rnd20 gt %.3f\n",
                    cr.seed, cr.person.converged ? "ok" : "NO", cr.person.keyframes, cr.person.eps_gt,
@@ -466,14 +573,18 @@ int main(int argc, char** argv) {
   std::vector<std::thread> pool;
   for (int t = 0; t < std::max(1, o.threads); ++t) pool.emplace_back(worker);
   for (auto& t : pool) t.join();
+  return runs;
+}
 
+// The tables of one world without --world: docs/benchmarks.md up to 2026-12-02.
+void print_single_world(const std::vector<CameraRuns>& runs, const Options& o) {
   auto column = [&](auto get) {
     std::vector<double> v;
     for (const auto& r : runs) v.push_back(get(r));
     return v;
   };
   std::printf("\n%d cameras sampled around '%s' (10%% std per parameter), noise 2 grey levels, blur 0.8 px, "
-              "engine config '%s'\n\n", o.cameras, o.camera.c_str(), o.config.c_str());
+              "engine config '%s'\n\n", o.cameras, o.camera.c_str(), o.configs.front().c_str());
   std::printf("| method | converged | keyframes | operator frames | eps_test [px] | eps_gt [px] | eps_gt / random-10 |\n");
   std::printf("|---|---|---|---|---|---|---|\n");
   struct M {
@@ -517,24 +628,275 @@ int main(int argc, char** argv) {
     }
     std::printf("\n");
   }
-  if (!o.csv.empty()) {
-    FILE* f = std::fopen(o.csv.c_str(), "w");
-    if (!f) {
-      std::fprintf(stderr, "cannot write %s\n", o.csv.c_str());
-      return 1;
-    }
-    std::fprintf(f, "seed,method,converged,keyframes,frames,eps_test,eps_gt,eps_gt_pinhole,eps_gt_distortion,eps_gt_predicted,"
-                 "eps_gt_edges,expected_error_px,expected_mean_px,expected_p90_px\n");
-    for (const auto& r : runs) {
-      for (const M m : {M{"person", &CameraRuns::person}, M{"robot", &CameraRuns::robot}, M{"random10", &CameraRuns::base10},
-                        M{"random20", &CameraRuns::base20}}) {
-        const Run& x = r.*(m.run);
-        std::fprintf(f, "%d,%s,%d,%d,%d,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f\n", r.seed, m.name, x.converged,
-                     x.keyframes, x.frames, x.eps_test, x.eps_gt, x.eps_gt_pinhole, x.eps_gt_distortion,
-                     x.eps_gt_predicted, x.eps_gt_edges, x.expected_error_px, x.expected_mean_px, x.expected_p90_px);
+}
+
+// Percentile of the finite values (linear interpolation), NaN if none.
+double percentile(std::vector<double> v, double p) {
+  v.erase(std::remove_if(v.begin(), v.end(), [](double x) { return !std::isfinite(x); }), v.end());
+  if (v.empty()) return NAN;
+  std::sort(v.begin(), v.end());
+  const double i = p * (v.size() - 1);
+  const size_t lo = static_cast<size_t>(std::floor(i)), hi = static_cast<size_t>(std::ceil(i));
+  return v[lo] + (v[hi] - v[lo]) * (i - lo);
+}
+
+// Median with a 95% percentile-bootstrap interval (2000 resamples, fixed seed): "m [lo, hi]".
+std::string median_ci(const std::vector<double>& v, const char* f) {
+  std::vector<double> x;
+  for (double a : v)
+    if (std::isfinite(a)) x.push_back(a);
+  if (x.empty()) return "-";
+  std::mt19937_64 rng(12345);
+  std::uniform_int_distribution<size_t> pick(0, x.size() - 1);
+  std::vector<double> medians, sample(x.size());
+  for (int b = 0; b < 2000; ++b) {
+    for (double& a : sample) a = x[pick(rng)];
+    medians.push_back(percentile(sample, 0.5));
+  }
+  char m[32], lo[32], hi[32], buf[128];
+  std::snprintf(m, sizeof m, f, percentile(x, 0.5));
+  std::snprintf(lo, sizeof lo, f, percentile(medians, 0.025));
+  std::snprintf(hi, sizeof hi, f, percentile(medians, 0.975));
+  std::snprintf(buf, sizeof buf, "%s [%s, %s]", m, lo, hi);
+  return buf;
+}
+
+// Every configuration against the first, per camera: eps_gt ratio and keyframe difference.
+void print_paired(const std::vector<CameraRuns>& runs, const Options& o) {
+  for (size_t c = 1; c < o.configs.size(); ++c) {
+    std::vector<double> ratio, dkf;
+    int better = 0, both = 0;
+    for (const CameraRuns& r : runs) {
+      const double a = r.persons[0].eps_gt_edges, b = r.persons[c].eps_gt_edges;
+      ratio.push_back(b / a);
+      dkf.push_back(r.persons[c].keyframes - r.persons[0].keyframes);
+      if (std::isfinite(a) && std::isfinite(b)) {
+        ++both;
+        better += b < a;
       }
     }
-    std::fclose(f);
+    std::printf("paired, %s vs %s: eps_gt ratio %s (p90 %.2f), keyframes %s, better on %d of %d\n",
+                o.configs[c].c_str(), o.configs[0].c_str(), median_ci(ratio, "%.2f").c_str(), percentile(ratio, 0.9),
+                median_ci(dkf, "%+.1f").c_str(), better, both);
   }
+}
+
+// What a world's summary keeps for the table of all worlds.
+struct WorldSummary {
+  std::string name;
+  std::vector<double> ratio;  // per configuration: median eps_gt / random-10 (edge grid)
+  std::vector<double> converged_fraction;
+};
+
+// One world's table: per configuration and baseline, converged, keyframes, operator frames,
+// eps_gt over the edge grid (median with interval, p90), the per-camera ratio to random-10; then
+// every configuration paired against the first.
+WorldSummary print_world(const World& w, const std::vector<CameraRuns>& runs, const Options& o) {
+  WorldSummary ws;
+  ws.name = w.name();
+  const int n = static_cast<int>(runs.size());
+  std::printf("\n### %s: %d cameras, seeds %d-%d\n\n", ws.name.c_str(), n, o.first_seed, o.first_seed + n - 1);
+  std::printf("| method | converged | keyframes | operator frames | eps_gt [px] | eps_gt p90 | eps_gt / random-10 | ratio p90 | eps_res "
+              "| bootstrap frames (max) |\n");
+  std::printf("|---|---|---|---|---|---|---|---|---|---|\n");
+  auto row = [&](const std::string& name, auto get) {
+    std::vector<double> kf, fr, gt, ratio, res, boot;
+    int conv = 0, stranded = 0;
+    for (const CameraRuns& r : runs) {
+      const Run& x = get(r);
+      conv += x.converged;
+      if (x.bootstrap_frames >= 0) boot.push_back(x.bootstrap_frames);
+      else stranded += x.frames > 0 && !x.attempts.empty();
+      kf.push_back(x.keyframes);
+      fr.push_back(x.frames);
+      gt.push_back(x.eps_gt_edges);
+      ratio.push_back(x.eps_gt_edges / r.base10.eps_gt_edges);
+      res.push_back(x.eps_res);
+    }
+    char b[64] = "-";
+    if (!boot.empty() || stranded)
+      std::snprintf(b, sizeof b, "%.0f (%.0f)%s", percentile(boot, 0.5), percentile(boot, 1.0),
+                    stranded ? (", " + std::to_string(stranded) + " never").c_str() : "");
+    std::printf("| %s | %d/%d | %s | %s | %s | %.3f | %s | %.2f | %.3f | %s |\n", name.c_str(), conv, n,
+                median_ci(kf, "%.1f").c_str(), median_ci(fr, "%.0f").c_str(), median_ci(gt, "%.3f").c_str(),
+                percentile(gt, 0.9), median_ci(ratio, "%.2f").c_str(), percentile(ratio, 0.9), percentile(res, 0.5), b);
+    return std::make_pair(percentile(ratio, 0.5), double(conv) / n);
+  };
+  for (size_t c = 0; c < o.configs.size(); ++c) {
+    const auto [ratio, conv] = row("posecal " + o.configs[c] + ", " + w.op, [&](const CameraRuns& r) -> const Run& { return r.persons[c]; });
+    ws.ratio.push_back(ratio);
+    ws.converged_fraction.push_back(conv);
+  }
+  if (o.robot) row("posecal " + o.configs.front() + ", robot", [](const CameraRuns& r) -> const Run& { return r.robot; });
+  row("OpenCV, 10 random views", [](const CameraRuns& r) -> const Run& { return r.base10; });
+  row("OpenCV, 20 random views", [](const CameraRuns& r) -> const Run& { return r.base20; });
+  std::printf("\nmedian [95%% bootstrap interval]; eps_gt: mean over the 40x23 edge-to-edge grid; ratios per camera.\n");
+  print_paired(runs, o);
+  for (size_t c = 0; c < o.configs.size() && g_compactness; ++c) {
+    std::vector<double> kept, share, eps;
+    for (const CameraRuns& r : runs) {
+      const Run& x = r.persons[c];
+      if (x.compact_kept < 0) continue;
+      kept.push_back(x.compact_kept);
+      share.push_back(double(x.compact_kept) / x.keyframes);
+      eps.push_back(x.compact_eps_test / x.compact_eps_test_all);
+    }
+    std::printf("compactness test (paper §5.3), %s: keeps %s keyframes, %s of them; its eps_test / the session's %s\n",
+                o.configs[c].c_str(), median_ci(kept, "%.1f").c_str(), median_ci(share, "%.2f").c_str(),
+                median_ci(eps, "%.3f").c_str());
+  }
+  std::map<std::string, AttemptStats> total;
+  for (const auto& r : runs)
+    for (const auto& [k, a] : r.person.attempts) {
+      total[k].attempts += a.attempts;
+      total[k].reached += a.reached;
+    }
+  std::printf("%s, %s: targets reached per attempt:", w.op.c_str(), o.configs.front().c_str());
+  for (const auto& [k, a] : total)
+    std::printf("  %s %d/%d (%.0f%%)", k.c_str(), a.reached, a.attempts, a.attempts ? 100.0 * a.reached / a.attempts : 0.0);
+  std::printf("\n");
+  std::fflush(stdout);
+  return ws;
+}
+
+void print_worlds_summary(const std::vector<WorldSummary>& all, const Options& o) {
+  std::printf("\n### All worlds: median eps_gt / random-10 (converged)\n\n| world |");
+  for (const auto& c : o.configs) std::printf(" %s |", c.c_str());
+  std::printf("\n|---|");
+  for (size_t c = 0; c < o.configs.size(); ++c) std::printf("---|");
+  std::printf("\n");
+  for (const WorldSummary& w : all) {
+    std::printf("| %s |", w.name.c_str());
+    for (size_t c = 0; c < o.configs.size(); ++c) std::printf(" %.2f (%.0f%%) |", w.ratio[c], 100 * w.converged_fraction[c]);
+    std::printf("\n");
+  }
+  std::printf("| **worst** |");
+  for (size_t c = 0; c < o.configs.size(); ++c) {
+    double worst = 0, worst_conv = 1;
+    for (const WorldSummary& w : all) {
+      worst = std::max(worst, w.ratio[c]);
+      worst_conv = std::min(worst_conv, w.converged_fraction[c]);
+    }
+    std::printf(" %.2f (%.0f%%) |", worst, 100 * worst_conv);
+  }
+  std::printf("\n");
+}
+
+bool write_csv(const std::string& path, const std::vector<std::pair<World, std::vector<CameraRuns>>>& worlds,
+               const Options& o) {
+  FILE* f = std::fopen(path.c_str(), "w");
+  if (!f) {
+    std::fprintf(stderr, "cannot write %s\n", path.c_str());
+    return false;
+  }
+  std::fprintf(f, "seed,method,converged,keyframes,frames,eps_test,eps_gt,eps_gt_pinhole,eps_gt_distortion,eps_gt_predicted,"
+               "eps_gt_edges,expected_error_px,expected_mean_px,expected_p90_px,eps_res,world,config,bootstrap_frames\n");
+  for (const auto& [world, runs] : worlds) {
+    for (const auto& r : runs) {
+      std::vector<std::tuple<std::string, std::string, const Run*>> rows;
+      rows.emplace_back("person", o.configs.front(), &r.person);
+      if (o.robot) rows.emplace_back("robot", o.configs.front(), &r.robot);
+      rows.emplace_back("random10", "", &r.base10);
+      rows.emplace_back("random20", "", &r.base20);
+      for (size_t c = 1; c < o.configs.size(); ++c) rows.emplace_back("person", o.configs[c], &r.persons[c]);
+      for (const auto& [method, config, x] : rows) {
+        std::fprintf(f, "%d,%s,%d,%d,%d,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%s,%s,%d\n", r.seed, method.c_str(),
+                     x->converged, x->keyframes, x->frames, x->eps_test, x->eps_gt, x->eps_gt_pinhole,
+                     x->eps_gt_distortion, x->eps_gt_predicted, x->eps_gt_edges, x->expected_error_px,
+                     x->expected_mean_px, x->expected_p90_px, x->eps_res, world.name().c_str(), config.c_str(),
+                     x->bootstrap_frames);
+      }
+    }
+  }
+  return std::fclose(f) == 0;
+}
+
+std::vector<std::string> split_commas(const std::string& text) {
+  std::vector<std::string> out;
+  std::stringstream ss(text);
+  std::string item;
+  while (std::getline(ss, item, ',')) out.push_back(item);
+  return out;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  Options o;
+  std::vector<World> worlds;
+  std::string seeds;
+  for (int i = 1; i < argc; ++i) {
+    const std::string a = argv[i];
+    auto next = [&]() -> std::string {
+      if (i + 1 >= argc) {
+        std::fprintf(stderr, "%s needs a value\n", a.c_str());
+        std::exit(1);
+      }
+      return argv[++i];
+    };
+    if (a == "--cameras") o.cameras = std::stoi(next());
+    else if (a == "--camera") o.camera = next();
+    else if (a == "--threads") o.threads = std::stoi(next());
+    else if (a == "--config") o.configs = split_commas(next());
+    else if (a == "--distortion-tilt") g_distortion_tilt_deg = std::stod(next());
+    else if (a == "--score") g_score = next();
+    else if (a == "--views") g_views = std::stoi(next());
+    else if (a == "--views-serve-target") g_serve = true;
+    else if (a == "--accuracy-px") g_accuracy_px = std::stod(next());
+    else if (a == "--csv") o.csv = next();
+    else if (a == "--figure3") o.figure3 = next();
+    else if (a == "--figure3-cameras") o.figure3_cameras = std::stoi(next());
+    else if (a == "--world") worlds.push_back(parse_world(next()));
+    else if (a == "--worlds" && next() == "standard") worlds = standard_worlds();
+    else if (a == "--seeds") seeds = next();
+    else if (a == "--robot") o.robot = true;
+    else if (a == "--compactness") g_compactness = true;
+    else {
+      std::fprintf(stderr, "unknown option %s\n", a.c_str());
+      return 1;
+    }
+  }
+  if (o.configs.empty()) {
+    std::fprintf(stderr, "--config needs at least one configuration\n");
+    return 1;
+  }
+  for (const std::string& c : o.configs) {
+    EngineOptions probe;
+    apply_config(c, &probe);  // throws for an unknown name
+  }
+  if (!o.figure3.empty()) {
+    figure3(o);
+    return 0;
+  }
+  const bool world_mode = !worlds.empty();
+  if (world_mode) {
+    // Worlds: the robot only when asked; seeds from --seeds (default: the tuning set).
+    o.robot = false;
+    for (int i = 1; i < argc; ++i) o.robot = o.robot || std::string(argv[i]) == "--robot";
+    if (seeds.empty() || seeds == "tune") {
+      o.first_seed = 1;
+      o.cameras = seeds.empty() ? std::min(o.cameras, 30) : 30;
+    } else if (seeds == "report") {
+      o.first_seed = 1001;
+      o.cameras = 100;
+    } else {
+      const size_t dash = seeds.find('-');
+      o.first_seed = std::stoi(seeds.substr(0, dash));
+      o.cameras = dash == std::string::npos ? 1 : std::stoi(seeds.substr(dash + 1)) - o.first_seed + 1;
+    }
+  } else {
+    World w;
+    w.camera = o.camera;
+    worlds.push_back(w);
+  }
+  std::vector<std::pair<World, std::vector<CameraRuns>>> results;
+  std::vector<WorldSummary> summaries;
+  for (const World& w : worlds) {
+    results.emplace_back(w, run_world(w, o, world_mode));
+    if (world_mode) summaries.push_back(print_world(w, results.back().second, o));
+    else print_single_world(results.back().second, o);
+  }
+  if (world_mode) print_worlds_summary(summaries, o);
+  if (!o.csv.empty() && !write_csv(o.csv, results, o)) return 1;
   return 0;
 }

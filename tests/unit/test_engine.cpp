@@ -126,6 +126,52 @@ TEST(Engine, WaitsForTheBoardThenBootstrapsThenFollowsInitialPoses) {
   EXPECT_EQ(rig.transitions(), (std::vector<std::string>{"waiting_for_board>bootstrapping", "bootstrapping>initial_pose_1"}));
 }
 
+// A person who never tilts the board enough for one view to determine f (the benchmark's
+// hold-only person shows 10-25 degrees): the engine says how much more to tilt, and two such
+// 12 degree views about different axes bootstrap together. Frames of the same view do not.
+TEST(Engine, WeakViewsBootstrapTogetherAndTheHintSaysHowMuchToTilt) {
+  Rig rig;
+  EngineOptions o;
+  CalibrationEngine e(rig.truth.size(), o);
+  const Pose a = board_pose_at(rig.board, Eigen::Vector3d(0.01, 0, 0.5), 0.3, 12 * M_PI / 180, 0);
+  const Pose b = board_pose_at(rig.board, Eigen::Vector3d(-0.01, 0.01, 0.5), 0.3 + M_PI / 2, 12 * M_PI / 180, 0);
+  FrameReport r;
+  for (int i = 0; i < 3; ++i) r = e.process(rig.camera.render(a));
+  ASSERT_EQ(r.state, EngineState::kBootstrapping) << "one 12 degree view must not determine f";
+  EXPECT_NE(r.guidance.find("tilt the board about"), std::string::npos) << r.guidance;
+  EXPECT_NE(r.guidance.find("degrees more (it is tilted 12 degrees)"), std::string::npos) << r.guidance;
+  r = e.process(rig.camera.render(b));
+  EXPECT_EQ(r.state, EngineState::kInitialPose1) << r.guidance;
+  ASSERT_TRUE(e.target());
+  EXPECT_NEAR(e.estimate().fx(), rig.truth.fx(), 0.1 * rig.truth.fx());
+  // A board too small for the bootstrap: the hint says so.
+  CalibrationEngine small(rig.truth.size(), o);
+  const Pose far = board_pose_at(rig.board, Eigen::Vector3d(0, 0, 1.6), 0.3, 8 * M_PI / 180, 0);
+  r = small.process(rig.camera.render(far));
+  ASSERT_EQ(r.state, EngineState::kBootstrapping);
+  EXPECT_NE(r.guidance.find("closer"), std::string::npos) << r.guidance;
+}
+
+// An initial pose nobody reaches does not strand the session: after target_timeout_frames it
+// is offered again, less tilted.
+TEST(Engine, UnreachedInitialPoseIsOfferedAgainLessTilted) {
+  Rig rig;
+  EngineOptions o;
+  o.target_timeout_frames = 5;
+  CalibrationEngine e(rig.truth.size(), o);
+  rig.listen(e);
+  const Pose tilted = board_pose_at(rig.board, Eigen::Vector3d(0, 0, 0.5), 0.4, 30 * M_PI / 180, 0.2);
+  e.process(rig.camera.render(tilted));
+  ASSERT_EQ(e.state(), EngineState::kInitialPose1);
+  EXPECT_DOUBLE_EQ(e.target()->tilt_deg, 45.0);
+  // The board stays where it is (far from the 45 degree target).
+  for (int i = 0; i < 7; ++i) e.process(rig.camera.render(tilted));
+  EXPECT_EQ(rig.count(EngineEvent::Kind::kTargetSkipped), 1);
+  EXPECT_EQ(e.state(), EngineState::kInitialPose1);
+  ASSERT_TRUE(e.target());
+  EXPECT_DOUBLE_EQ(e.target()->tilt_deg, 35.0);
+}
+
 TEST(Engine, StillnessAndCornerCountGateTheCapture) {
   Rig rig;
   EngineOptions o;

@@ -206,6 +206,12 @@ TEST(PoseGen, InitialPoses) {
   EXPECT_LT(y1, cam.height() - 1);
   EXPECT_GT(std::max((x1 - x0) / cam.width(), (y1 - y0) / cam.height()), 0.85);
   EXPECT_THROW(pg.initial_pose(2, cam), Error);
+  // Offered again after a timeout: 10 degrees less tilted each time, down to 25.
+  EXPECT_DOUBLE_EQ(pg.initial_pose(0, cam, 1).tilt_deg, 35.0);
+  EXPECT_DOUBLE_EQ(pg.initial_pose(0, cam, 2).tilt_deg, 25.0);
+  EXPECT_DOUBLE_EQ(pg.initial_pose(0, cam, 7).tilt_deg, 25.0);
+  EXPECT_EQ(pg.initial_pose(1, cam, 3).T_cam_board.t, b.T_cam_board.t);
+  EXPECT_THROW(pg.initial_pose(0, cam, -1), Error);
 }
 
 TEST(PoseGen, JaccardIndex) {

@@ -173,5 +173,41 @@ TEST(SessionKeys, EveryKeyIsDocumentedWhereHostsLook) {
   }
 }
 
+// "method" is a preset applied before every other key (it is the table's first), so keys given
+// with it override it; accuracy_px cannot go with a method that stops on the ratio test.
+TEST(SessionKeys, MethodIsAPresetTheOtherKeysOverride) {
+  ASSERT_STREQ(session_keys().front().key, "method");
+  SessionOptions o;
+  set_session_key(&o, "method", std::string("paper"));
+  EXPECT_EQ(o.engine.method, EngineOptions::Method::kPaper);
+  EXPECT_EQ(o.engine.pose_candidates, 1);
+  EXPECT_FALSE(o.engine.prospective_convergence);
+  EXPECT_EQ(o.engine.convergence_measure, EngineOptions::ConvergenceMeasure::kVariance);
+  EXPECT_EQ(o.engine.view_candidates, 0);
+  EXPECT_EQ(o.engine.posegen.pinhole_fill, 0.6);
+  EXPECT_EQ(std::get<std::string>(get_session_key(o, "method")), "paper");
+  set_session_key(&o, "pose_candidates", 3LL);  // a later key overrides the preset
+  EXPECT_EQ(o.engine.pose_candidates, 3);
+  set_session_key(&o, "method", std::string("reference-std"));
+  EXPECT_EQ(o.engine.convergence_measure, EngineOptions::ConvergenceMeasure::kStd);
+  EXPECT_EQ(o.engine.pose_candidates, 1);
+  std::string why;
+  EXPECT_TRUE(o.is_valid(&why)) << why;
+  set_session_key(&o, "accuracy_px", 0.3);
+  EXPECT_FALSE(o.is_valid(&why));
+  EXPECT_NE(why.find("accuracy_px"), std::string::npos) << why;
+  EXPECT_NE(why.find("reference-std"), std::string::npos) << why;
+  // Back to posecal's engine: every preset member at its default, accuracy_px allowed.
+  set_session_key(&o, "method", std::string("posecal"));
+  const EngineOptions d;
+  EXPECT_EQ(o.engine.pose_candidates, d.pose_candidates);
+  EXPECT_EQ(o.engine.prospective_convergence, d.prospective_convergence);
+  EXPECT_EQ(o.engine.convergence_measure, d.convergence_measure);
+  EXPECT_EQ(o.engine.view_candidates, d.view_candidates);
+  EXPECT_EQ(o.engine.posegen.pinhole_fill, d.posegen.pinhole_fill);
+  EXPECT_TRUE(o.is_valid(&why)) << why;
+  EXPECT_THROW(set_session_key(&o, "method", std::string("magic")), Error);
+}
+
 }  // namespace
 }  // namespace posecal

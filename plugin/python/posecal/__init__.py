@@ -315,7 +315,7 @@ class Context(_Handle):
 
     def open(self, uri, **config):
         """Opens a calibration session on a camera. config: the keys of posecal_session_open
-        (core/session/session_keys.def): target, operator, convergence_threshold, max_keyframes,
+        (core/session/session_keys.def): method, target, operator, convergence_threshold, max_keyframes,
         jaccard_threshold, still_motion_px, constraint_factor, target_timeout_frames,
         pose_candidates, lock_settings, max_tilt_deg, fixed, convergence_measure,
         measured_convergence, candidate_score, view_candidates, view_must_serve_target,
