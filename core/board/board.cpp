@@ -8,6 +8,7 @@
 #include <fstream>
 #include <limits>
 #include <map>
+#include <optional>
 #include <opencv2/aruco/charuco.hpp>
 #include <opencv2/calib3d.hpp>
 #include <opencv2/imgcodecs.hpp>
@@ -208,30 +209,89 @@ int subpix_half_window(const std::vector<cv::Point2f>& pts, int cols, int rows) 
   return std::clamp(static_cast<int>(min_d * 0.4), 2, 11);
 }
 
-// OpenCV refines ChArUco corners with a fixed 11x11 window (cornerRefinementWinSize = 5), which
-// is too small for large squares and, on tilted boards, leaves biases of up to 0.4 px. Refine
-// again with a window scaled to the local square size: 12% of the distance to the nearest
-// neighbouring corner keeps it inside the white gap between the corner and the adjacent
-// markers (17.5% of the square for the paper's 0.65 marker ratio).
-void refine_charuco_corners(const cv::Mat& gray, int corners_per_row, const std::vector<int>& ids,
-                            std::vector<cv::Point2f>* corners) {
+// Chebyshev (L-infinity) distance from the origin to the segment a-b: cornerSubPix's window is a
+// square, so this is how far a window centred at the origin can reach before touching it. The
+// distance is convex and piecewise linear in the segment parameter, so its minimum lies at an end
+// or where a coordinate vanishes or |x| = |y|.
+double chebyshev_distance_to_segment(const cv::Point2d& a, const cv::Point2d& b) {
+  const cv::Point2d d = b - a;
+  double best = std::max(std::abs(a.x), std::abs(a.y));
+  best = std::min(best, std::max(std::abs(b.x), std::abs(b.y)));
+  auto consider = [&](double num, double den) {
+    if (std::abs(den) < 1e-12) return;
+    const double t = num / den;
+    if (t <= 0 || t >= 1) return;
+    const cv::Point2d p = a + t * d;
+    best = std::min(best, std::max(std::abs(p.x), std::abs(p.y)));
+  };
+  consider(-a.x, d.x);           // x = 0
+  consider(-a.y, d.y);           // y = 0
+  consider(a.y - a.x, d.x - d.y);  // x = y
+  consider(-a.x - a.y, d.x + d.y);  // x = -y
+  return best;
+}
+
+// How far a square window centred on a ChArUco corner reaches before it touches one of the four
+// adjacent squares' markers, from the local image axes of one square step along the board's x
+// (ju) and y (jv). `inset` is the marker's distance from its square's edges in squares
+// ((1 - marker / square) / 2). All four squares are treated as holding a marker (conservative).
+double marker_clearance_px(const cv::Point2d& ju, const cv::Point2d& jv, double inset) {
+  double best = std::numeric_limits<double>::infinity();
+  const double lo = inset, hi = 1.0 - inset;
+  for (int su : {-1, 1})
+    for (int sv : {-1, 1}) {
+      const cv::Point2d q[4] = {su * lo * ju + sv * lo * jv, su * hi * ju + sv * lo * jv,
+                                su * hi * ju + sv * hi * jv, su * lo * ju + sv * hi * jv};
+      for (int k = 0; k < 4; ++k) best = std::min(best, chebyshev_distance_to_segment(q[k], q[(k + 1) % 4]));
+    }
+  return best;
+}
+
+// OpenCV refines ChArUco corners with a window of at most 11x11 (cornerRefinementWinSize = 5),
+// shrunk near the markers' corners; too small for large squares, and on tilted boards it leaves
+// biases of up to 0.4 px. Refine again with a window scaled to the local square size (12% of the
+// distance to the nearest neighbouring corner) that also stays clear of the adjacent markers'
+// borders, measured along the local, possibly foreshortened and skewed, image axes of the board:
+// at tilts beyond ~60 degrees a window from the corner spacing alone reaches a marker's border
+// and pulls the corner several pixels off (docs/benchmarks.md, "The corner detector's bias").
+// A corner whose markers come closer than kMinClearancePx is dropped: no window both sees the
+// saddle and misses the markers.
+void refine_charuco_corners(const cv::Mat& gray, int corners_per_row, double marker_inset,
+                            std::vector<int>* ids, std::vector<cv::Point2f>* corners) {
+  constexpr double kMarginPx = 1.5;  // blur and the estimate's own movement
+  constexpr double kMinClearancePx = kMarginPx + 1.0;
   std::map<int, size_t> index;
-  for (size_t i = 0; i < ids.size(); ++i) index[ids[i]] = i;
+  for (size_t i = 0; i < ids->size(); ++i) index[(*ids)[i]] = i;
+  auto at = [&](int id) -> const cv::Point2f* {
+    auto it = index.find(id);
+    return it == index.end() ? nullptr : &(*corners)[it->second];
+  };
+  // One square step along the grid from the neighbours on either side (or one side).
+  auto step = [&](int id, int prev, int next) -> std::optional<cv::Point2d> {
+    const cv::Point2f* a = prev >= 0 ? at(prev) : nullptr;
+    const cv::Point2f* b = next >= 0 ? at(next) : nullptr;
+    const cv::Point2d c = (*corners)[index[id]];
+    if (a && b) return (cv::Point2d(*b) - cv::Point2d(*a)) * 0.5;
+    if (b) return cv::Point2d(*b) - c;
+    if (a) return c - cv::Point2d(*a);
+    return std::nullopt;
+  };
   std::map<int, std::vector<size_t>> by_window;
-  for (size_t i = 0; i < ids.size(); ++i) {
-    const int id = ids[i], col = id % corners_per_row;
-    double d = std::numeric_limits<double>::infinity();
-    for (int nb : {id - corners_per_row, id + corners_per_row}) {
-      auto it = index.find(nb);
-      if (it != index.end()) d = std::min(d, cv::norm((*corners)[it->second] - (*corners)[i]));
+  std::vector<bool> drop(ids->size(), false);
+  for (size_t i = 0; i < ids->size(); ++i) {
+    const int id = (*ids)[i], col = id % corners_per_row;
+    const auto ju = step(id, col > 0 ? id - 1 : -1, col + 1 < corners_per_row ? id + 1 : -1);
+    const auto jv = step(id, id - corners_per_row, id + corners_per_row);
+    if (!ju || !jv) continue;  // isolated corner: keep OpenCV's refinement
+    const double d = std::min(cv::norm(*ju), cv::norm(*jv));
+    const double clearance = marker_clearance_px(*ju, *jv, marker_inset);
+    if (clearance < kMinClearancePx) {
+      drop[i] = true;
+      continue;
     }
-    if (col > 0 && index.count(id - 1))
-      d = std::min(d, cv::norm((*corners)[index[id - 1]] - (*corners)[i]));
-    if (col + 1 < corners_per_row && index.count(id + 1)) {
-      d = std::min(d, cv::norm((*corners)[index[id + 1]] - (*corners)[i]));
-    }
-    if (!std::isfinite(d)) continue;  // isolated corner: keep OpenCV's refinement
-    by_window[std::clamp(static_cast<int>(0.12 * d), 2, 10)].push_back(i);
+    const int by_spacing = std::clamp(static_cast<int>(0.12 * d), 2, 10);
+    const int by_markers = static_cast<int>(std::floor(clearance - kMarginPx));
+    by_window[std::max(1, std::min(by_spacing, by_markers))].push_back(i);
   }
   for (const auto& [hw, members] : by_window) {
     std::vector<cv::Point2f> pts;
@@ -240,6 +300,15 @@ void refine_charuco_corners(const cv::Mat& gray, int corners_per_row, const std:
                      cv::TermCriteria(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 50, 1e-3));
     for (size_t k = 0; k < members.size(); ++k) (*corners)[members[k]] = pts[k];
   }
+  size_t kept = 0;
+  for (size_t i = 0; i < ids->size(); ++i) {
+    if (drop[i]) continue;
+    (*ids)[kept] = (*ids)[i];
+    (*corners)[kept] = (*corners)[i];
+    ++kept;
+  }
+  ids->resize(kept);
+  corners->resize(kept);
 }
 
 }  // namespace
@@ -295,7 +364,8 @@ Detection Board::detect(const cv::Mat& image, const DetectorOptions& options) co
     // pixel-centre convention (measured: tests/unit/test_target.cpp renders one scene and
     // compares both detectors with the true projections). Remove it before refining again.
     for (auto& c : ch_corners) c -= cv::Point2f(0.5f, 0.5f);
-    refine_charuco_corners(gray, spec_.cols - 1, ch_ids, &ch_corners);
+    const double inset = 0.5 * (1.0 - spec_.marker_length_m / spec_.square_length_m);
+    refine_charuco_corners(gray, spec_.cols - 1, inset, &ch_ids, &ch_corners);
     std::vector<size_t> order(ch_ids.size());
     for (size_t i = 0; i < order.size(); ++i) order[i] = i;
     std::sort(order.begin(), order.end(),
