@@ -208,12 +208,13 @@ typedef struct posecal_image {
  *   "pose_candidates" (6), "lock_settings" (true), "max_tilt_deg" (70),
  *   "fixed" ([]: names among fx fy cx cy k1 k2 p1 p2 k3 held at their initial value,
  *   0 for distortion, e.g. ["k2", "k3"] for a narrow lens; they count as converged),
- *   "convergence_measure" ("variance": the paper's ratio test; "std": the reference
- *   implementation's, fewer keyframes, less accurate), "measured_convergence" (true; false:
+ *   "convergence_measure" ("std", the reference implementation's ratio test, the default;
+ *   "variance": the paper's, more keyframes), "measured_convergence" (true; false:
  *   parameters converge only when the best next pose would not help, more keyframes, more
  *   accurate; docs/benchmarks.md), "candidate_score" ("projection" | "variance"),
- *   "view_candidates" (0; n > 0: also score n random views of the whole board and capture the
- *   best-scored pose, view or rule; docs/pose-selection.md, "Generic view candidates"),
+ *   "view_candidates" (300: also score this many random views of the whole board and capture
+ *   the best-scored pose, view or rule; 0: rule poses only; docs/pose-selection.md, "Generic
+ *   view candidates"),
  *   "view_must_serve_target" (false; true: a view must also reduce the targeted parameter's
  *   variance at least as much as the rule's pose),
  *   "accuracy_px" (unset; a number in [0.001, 100]: the session converges when the expected

@@ -1,7 +1,7 @@
 // Pose selection vs random poses, side by side on the same sampled cameras (docs/benchmarks.md).
 //
 //   build/bin/bench_pose_selection [--cameras N] [--camera c525|industrial|tele|longfocal|vga]
-//       [--threads T] [--config NAME[,NAME...]] [--distortion-tilt DEG]
+//       [--threads T] [--config NAME[,NAME...]] [--distortion-tilt DEG] [--max-tilt DEG]
 //       [--score variance|projection] [--accuracy-px PX] [--csv FILE] [--figure3 FILE.png]
 //       [--world camera=C,operator=O,noise=N,renderer=R]... [--worlds standard]
 //       [--seeds tune|report|FIRST-LAST] [--robot] [--compactness]
@@ -212,6 +212,7 @@ RenderOptions render_options(const World& w, uint64_t seed) {
 
 // --distortion-tilt DEG: overrides PoseGenOptions::distortion_tilt_deg of any configuration.
 double g_distortion_tilt_deg = -1;
+double g_max_tilt_deg = -1;  // --max-tilt: the pinhole rule's tilt range
 // --score variance|projection: overrides EngineOptions::candidate_score of any configuration.
 std::string g_score;
 int g_views = -1;  // --views N (>= 0): EngineOptions::view_candidates
@@ -229,15 +230,23 @@ void apply_named_config(const std::string& config, EngineOptions* eo) {
     return;
   }
   if (config == "std-views") {
-    // The std ratio test with 300 generic view candidates per target choice (issue 13's better
-    // configuration: `--measure std --views 300`).
+    // The std ratio test with 300 generic view candidates per target choice: the default since
+    // 2026-12-02, kept under its old name so earlier commands still run.
     eo->convergence_measure = EngineOptions::ConvergenceMeasure::kStd;
     eo->view_candidates = 300;
     return;
   }
   if (config == "default-std") {
-    // posecal's engine with the reference implementation's std ratio test.
+    // posecal's engine with the std ratio test and rule poses only.
     eo->convergence_measure = EngineOptions::ConvergenceMeasure::kStd;
+    eo->view_candidates = 0;
+    return;
+  }
+  if (config == "variance" || config == "variance-views") {
+    // The default until 2026-12-02 (the paper's variance ratio test, rule poses only), and the
+    // variance test with the view candidates.
+    eo->convergence_measure = EngineOptions::ConvergenceMeasure::kVariance;
+    eo->view_candidates = config == "variance" ? 0 : 300;
     return;
   }
   // The session's methods (EngineOptions::set_method): the paper's rules, and with the
@@ -245,13 +254,14 @@ void apply_named_config(const std::string& config, EngineOptions* eo) {
   if (config == "paper") return eo->set_method(EngineOptions::Method::kPaper);
   if (config == "std") return eo->set_method(EngineOptions::Method::kReferenceStd);
   throw Error(ErrorCode::kInvalidArgument,
-              "unknown --config '" + config + "' (default, default-std, std-views, prospective, prospective-std, paper, std)");
+              "unknown --config '" + config + "' (default, std-views, default-std, variance, variance-views, prospective, prospective-std, paper, std)");
 }
 
 // The configuration, then the flags that override any configuration.
 void apply_config(const std::string& config, EngineOptions* eo) {
   apply_named_config(config, eo);
   if (g_distortion_tilt_deg >= 0) eo->posegen.distortion_tilt_deg = g_distortion_tilt_deg;
+  if (g_max_tilt_deg > 0) eo->posegen.max_tilt_deg = g_max_tilt_deg;
   if (g_score == "variance") eo->candidate_score = EngineOptions::CandidateScore::kParameterVariance;
   else if (g_score == "projection") eo->candidate_score = EngineOptions::CandidateScore::kProjection;
   else if (!g_score.empty()) throw Error(ErrorCode::kInvalidArgument, "unknown --score '" + g_score + "' (variance, projection)");
@@ -839,6 +849,7 @@ int main(int argc, char** argv) {
     else if (a == "--threads") o.threads = std::stoi(next());
     else if (a == "--config") o.configs = split_commas(next());
     else if (a == "--distortion-tilt") g_distortion_tilt_deg = std::stod(next());
+    else if (a == "--max-tilt") g_max_tilt_deg = std::stod(next());
     else if (a == "--score") g_score = next();
     else if (a == "--views") g_views = std::stoi(next());
     else if (a == "--views-serve-target") g_serve = true;

@@ -430,6 +430,7 @@ TEST(Engine, FirstRefinementTargetIsTheBestScoredCandidate) {
   for (const Score score : {Score::kProjection, Score::kParameterVariance}) {
     EngineOptions eo;
     eo.candidate_score = score;
+    eo.view_candidates = 0;  // rule candidates only; views: the tests below
     std::string param;
     std::unique_ptr<CalibrationSession> session = robot_session_at_first_refinement(eo, &param);
     if (!session) return;
