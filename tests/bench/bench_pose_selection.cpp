@@ -2,9 +2,10 @@
 //
 //   build/bin/bench_pose_selection [--cameras N] [--camera c525|industrial|tele|longfocal|vga]
 //       [--threads T] [--config NAME[,NAME...]] [--distortion-tilt DEG] [--max-tilt DEG]
-//       [--score variance|projection] [--accuracy-px PX] [--csv FILE] [--figure3 FILE.png]
+//       [--score variance|projection] [--accuracy-px PX] [--max-keyframes N] [--csv FILE]
+//       [--figure3 FILE.png]
 //       [--world camera=C,operator=O,noise=N,renderer=R]... [--worlds standard]
-//       [--seeds tune|report|FIRST-LAST] [--robot] [--compactness]
+//       [--seeds tune|report|FIRST-LAST] [--robot] [--compactness] [--random-match N]
 //
 // Per camera (seed i): the camera is sampled around the reference with 10% std per parameter
 // (paper §5.1); pose selection runs closed-loop with a simulated person (and a simulated robot);
@@ -21,7 +22,8 @@
 // cameras and operator draws, so methods compare paired; eps_gt is the edge-to-edge grid's mean
 // (corners included). Seeds: "tune" = 1..30 (what the engine may be tuned on), "report" =
 // 1001..1100 (what docs/benchmarks.md reports; never tuned on). --compactness runs the paper's
-// compactness test (§5.3) on every session's keyframes against its test set.
+// compactness test (§5.3) on every session's keyframes against its test set; --random-match N
+// counts the random views (up to N) OpenCV needs to reach each session's realised eps_gt.
 #include <algorithm>
 #include <atomic>
 #include <cmath>
@@ -196,10 +198,20 @@ struct Run {
   std::map<std::string, AttemptStats> attempts;
 };
 
+// Random views needed to reach a realised eps_gt (--random-match): the smallest prefix of one
+// random view sequence whose OpenCV calibration is at least as accurate; 0 = not within the
+// sequence.
+struct RandomMatch {
+  double target_eps_gt = NAN;
+  int views = -1;  // -1: not measured
+  int calibrations = 0;
+};
+
 struct CameraRuns {
   int seed = 0;
   Run person, robot, base10, base20;  // person and robot: the first configuration
   std::vector<Run> persons;           // the person with every configuration, in --config order
+  RandomMatch match;                  // --random-match, against persons[0]
 };
 
 RenderOptions render_options(const World& w, uint64_t seed) {
@@ -218,7 +230,11 @@ std::string g_score;
 int g_views = -1;  // --views N (>= 0): EngineOptions::view_candidates
 bool g_serve = false;  // --views-serve-target: EngineOptions::view_must_serve_target
 double g_accuracy_px = 0;  // --accuracy-px PX (> 0): EngineOptions::accuracy_px
+int g_max_keyframes = 0;   // --max-keyframes N (> 0): EngineOptions::max_keyframes
 bool g_compactness = false;  // --compactness: run the paper's compactness test on every session
+// --random-match N: per camera, how many random views (prefixes of one N-view sequence) OpenCV
+// needs to reach the first configuration's realised eps_gt (the "keyframes needed").
+int g_random_match = 0;
 
 // Engine configurations compared in docs/benchmarks.md.
 void apply_named_config(const std::string& config, EngineOptions* eo) {
@@ -268,6 +284,7 @@ void apply_config(const std::string& config, EngineOptions* eo) {
   if (g_views >= 0) eo->view_candidates = g_views;
   if (g_serve) eo->view_must_serve_target = true;
   if (g_accuracy_px > 0) eo->accuracy_px = g_accuracy_px;
+  if (g_max_keyframes > 0) eo->max_keyframes = g_max_keyframes;
 }
 
 void split_eps_gt(const CameraModel& truth, const CameraModel& estimate, Run* r) {
@@ -338,25 +355,38 @@ Run closed_loop(const World& world, const CameraModel& truth, const BoardSpec& t
   return r;
 }
 
-Run random_baseline(const World& world, const CameraModel& truth, const BoardSpec& target, uint64_t seed, int n,
-                    const std::vector<Observation>& test) {
+// Random well-spread views (board fully visible, tilt up to 45 deg) rendered by the world's
+// renderer and detected; views with fewer than 6 corners are left out.
+std::vector<Observation> random_observations(const World& world, const CameraModel& truth, const BoardSpec& target,
+                                             uint64_t view_seed, uint64_t render_seed, int n) {
   const Board board(target);
-  SyntheticCamera sc(truth, board, render_options(world, seed + 1000003));
+  SyntheticCamera sc(truth, board, render_options(world, render_seed));
   ViewSampling vs;
   vs.max_tilt_deg = 45;
+  std::vector<Observation> frames;
+  for (const Pose& p : random_board_views(view_seed, n, truth, board, vs)) {
+    const Detection d = board.detect(sc.render(p));
+    if (d.size() >= 6) frames.push_back(Observation::from(d));
+  }
+  return frames;
+}
+
+// OpenCV's calibration of `frames`, scored like the closed loop; converged = false if OpenCV
+// throws. with_covariance: also the covariance-predicted eps_gt through posecal's calibration.
+Run opencv_calibration(const CameraModel& truth, const std::vector<Observation>& frames,
+                       const std::vector<Observation>& test, bool with_covariance) {
   std::vector<std::vector<cv::Point3f>> obj;
   std::vector<std::vector<cv::Point2f>> img;
-  std::vector<Observation> frames;
-  for (const Pose& p : random_board_views(seed * 7919 + n, n, truth, board, vs)) {
-    const Detection d = board.detect(sc.render(p));
-    if (d.size() < 6) continue;
-    frames.push_back(Observation::from(d));
-    obj.emplace_back(d.board_points.begin(), d.board_points.end());
-    img.emplace_back(d.image_points.begin(), d.image_points.end());
+  for (const Observation& f : frames) {
+    obj.emplace_back();
+    img.emplace_back();
+    for (size_t j = 0; j < f.image_points.size(); ++j) {
+      obj.back().emplace_back(f.board_points[j].x, f.board_points[j].y, f.board_points[j].z);
+      img.back().emplace_back(f.image_points[j].x, f.image_points[j].y);
+    }
   }
   Run r;
   r.keyframes = static_cast<int>(obj.size());
-  r.frames = n;
   try {
     cv::Mat K, D;
     std::vector<cv::Mat> rv, tv;
@@ -371,11 +401,54 @@ Run random_baseline(const World& world, const CameraModel& truth, const BoardSpe
     r.eps_gt_edges = ground_truth_error_edges(truth, m);
     // Covariance of the same frames through posecal's calibration (equal to OpenCV's solution,
     // tests/core: Calibration.NoWorseThanOpenCVOnTheSameFrames).
-    r.eps_gt_predicted = predicted_eps_gt(calibrate(frames, truth.size()));
+    if (with_covariance) r.eps_gt_predicted = predicted_eps_gt(calibrate(frames, truth.size()));
   } catch (const std::exception&) {
     r.converged = false;
   }
   return r;
+}
+
+Run random_baseline(const World& world, const CameraModel& truth, const BoardSpec& target, uint64_t seed, int n,
+                    const std::vector<Observation>& test) {
+  Run r = opencv_calibration(truth, random_observations(world, truth, target, seed * 7919 + n, seed + 1000003, n),
+                             test, true);
+  r.frames = n;
+  return r;
+}
+
+// --random-match: the smallest prefix of one random sequence of g_random_match views whose OpenCV
+// calibration reaches `target` (edge-grid eps_gt). Prefix lengths grow by 10% until one reaches
+// it, then the lengths in between are tried one by one.
+RandomMatch match_random_views(const World& world, const CameraModel& truth, const BoardSpec& target_board,
+                               uint64_t seed, double target, const std::vector<Observation>& test) {
+  RandomMatch m;
+  m.target_eps_gt = target;
+  if (!std::isfinite(target)) return m;
+  const std::vector<Observation> pool =
+      random_observations(world, truth, target_board, seed * 7919 + 424242, seed + 2000003, g_random_match);
+  auto reaches = [&](int n) {
+    ++m.calibrations;
+    const std::vector<Observation> prefix(pool.begin(), pool.begin() + n);
+    const Run r = opencv_calibration(truth, prefix, test, false);
+    return r.converged && r.eps_gt_edges <= target;
+  };
+  const int total = static_cast<int>(pool.size());
+  int below = 2;  // prefixes up to `below` views are known not to reach the target
+  for (int n = 3; n <= total; n = std::max(n + 1, static_cast<int>(std::lround(n * 1.1)))) {
+    if (!reaches(n)) {
+      below = n;
+      continue;
+    }
+    m.views = n;
+    for (int k = below + 1; k < n; ++k)
+      if (reaches(k)) {
+        m.views = k;
+        break;
+      }
+    return m;
+  }
+  m.views = total == g_random_match && reaches(total) ? total : 0;
+  return m;
 }
 
 struct Stats {
@@ -572,6 +645,8 @@ std::vector<CameraRuns> run_world(const World& world, const Options& o, bool qui
       if (o.robot) cr.robot = closed_loop(world, truth, target, cr.seed, "robot", o.configs.front(), test);
       cr.base10 = random_baseline(world, truth, target, cr.seed, 10, test);
       cr.base20 = random_baseline(world, truth, target, cr.seed, 20, test);
+      if (g_random_match > 0)
+        cr.match = match_random_views(world, truth, target, cr.seed, cr.persons.front().eps_gt_edges, test);
       if (quiet) continue;
       std::lock_guard<std::mutex> lock(print);
       std::fprintf(stderr, "camera %2d: person %s kf %2d gt %.3f | robot %s kf %2d gt %.3f | rnd10 gt %.3f | rnd20 gt %.3f\n",
@@ -691,6 +766,64 @@ void print_paired(const std::vector<CameraRuns>& runs, const Options& o) {
   }
 }
 
+// The honesty of the stop figure in one world: realised eps_gt (edge grid, mean distance)
+// against the session's expected_error_px (an RMS over the same grid) and its predicted mean;
+// with --accuracy-px, how often a converged run's realised error stays within 1.2 x (and 1.5 x)
+// the requested accuracy.
+void print_honesty(const std::vector<CameraRuns>& runs, size_t c, const std::string& config) {
+  std::vector<double> to_rms, to_mean;
+  int within_15 = 0, with_result = 0, converged = 0, within_12acc = 0, above_15acc = 0;
+  for (const CameraRuns& r : runs) {
+    const Run& x = r.persons[c];
+    if (!std::isfinite(x.eps_gt_edges) || !std::isfinite(x.expected_error_px)) continue;
+    ++with_result;
+    const double q = x.eps_gt_edges / x.expected_error_px;
+    to_rms.push_back(q);
+    to_mean.push_back(x.eps_gt_edges / x.expected_mean_px);
+    within_15 += q <= 1.5 && q >= 1 / 1.5;
+    if (!x.converged) continue;
+    ++converged;
+    within_12acc += x.eps_gt_edges <= 1.2 * g_accuracy_px;
+    above_15acc += x.eps_gt_edges > 1.5 * g_accuracy_px;
+  }
+  if (with_result == 0) return;
+  std::printf("honesty, %s: realised eps_gt / expected_error_px %s (p10 %.2f, p90 %.2f), within 1.5x either way in %d of "
+              "%d; realised / expected mean %s (p90 %.2f)\n",
+              config.c_str(), median_ci(to_rms, "%.2f").c_str(), percentile(to_rms, 0.1), percentile(to_rms, 0.9),
+              within_15, with_result, median_ci(to_mean, "%.2f").c_str(), percentile(to_mean, 0.9));
+  if (g_accuracy_px > 0)
+    std::printf("accuracy_px %.3f, %s: %d of %zu converged; realised <= 1.2 x accuracy_px in %d of %d converged (%.1f%%), "
+                "> 1.5 x in %d\n",
+                g_accuracy_px, config.c_str(), converged, runs.size(), within_12acc, converged,
+                converged ? 100.0 * within_12acc / converged : 0.0, above_15acc);
+}
+
+// --random-match: random views OpenCV needs for the first configuration's realised eps_gt, and
+// the session's keyframes as a share of them.
+void print_random_match(const std::vector<CameraRuns>& runs, const std::string& config) {
+  std::vector<double> views, share;  // an unreached target counts as infinitely many views
+  int half = 0, unreached = 0;
+  for (const CameraRuns& r : runs) {
+    if (r.match.views < 0) continue;
+    const int kf = r.persons[0].keyframes;
+    if (r.match.views == 0) ++unreached;
+    views.push_back(r.match.views > 0 ? r.match.views : INFINITY);
+    // Unreached: the share is below keyframes / N; N is what is counted (conservative).
+    share.push_back(double(kf) / (r.match.views > 0 ? r.match.views : g_random_match));
+    half += kf <= 0.5 * (r.match.views > 0 ? r.match.views : g_random_match);
+  }
+  if (views.empty()) return;
+  std::sort(views.begin(), views.end());
+  auto at = [&](double p) {
+    const double v = views[static_cast<size_t>(p * (views.size() - 1) + 0.5)];
+    return std::isfinite(v) ? std::to_string(static_cast<int>(v)) : std::string("more than ") + std::to_string(g_random_match);
+  };
+  std::printf("random views for the same eps_gt, %s: median %s (p10 %s, p90 %s); keyframes / random views %s "
+              "(p90 %.2f); keyframes <= 0.5 x random views in %d of %zu; %d not reached within %d views\n",
+              config.c_str(), at(0.5).c_str(), at(0.1).c_str(), at(0.9).c_str(), median_ci(share, "%.2f").c_str(),
+              percentile(share, 0.9), half, views.size(), unreached, g_random_match);
+}
+
 // What a world's summary keeps for the table of all worlds.
 struct WorldSummary {
   std::string name;
@@ -755,6 +888,8 @@ WorldSummary print_world(const World& w, const std::vector<CameraRuns>& runs, co
                 o.configs[c].c_str(), median_ci(kept, "%.1f").c_str(), median_ci(share, "%.2f").c_str(),
                 median_ci(eps, "%.3f").c_str());
   }
+  for (size_t c = 0; c < o.configs.size(); ++c) print_honesty(runs, c, o.configs[c]);
+  if (g_random_match > 0) print_random_match(runs, o.configs.front());
   std::map<std::string, AttemptStats> total;
   for (const auto& r : runs)
     for (const auto& [k, a] : r.person.attempts) {
@@ -854,6 +989,7 @@ int main(int argc, char** argv) {
     else if (a == "--views") g_views = std::stoi(next());
     else if (a == "--views-serve-target") g_serve = true;
     else if (a == "--accuracy-px") g_accuracy_px = std::stod(next());
+    else if (a == "--max-keyframes") g_max_keyframes = std::stoi(next());
     else if (a == "--csv") o.csv = next();
     else if (a == "--figure3") o.figure3 = next();
     else if (a == "--figure3-cameras") o.figure3_cameras = std::stoi(next());
@@ -862,6 +998,7 @@ int main(int argc, char** argv) {
     else if (a == "--seeds") seeds = next();
     else if (a == "--robot") o.robot = true;
     else if (a == "--compactness") g_compactness = true;
+    else if (a == "--random-match") g_random_match = std::stoi(next());
     else {
       std::fprintf(stderr, "unknown option %s\n", a.c_str());
       return 1;
