@@ -90,7 +90,7 @@ Json summary(const Json& result, double wall_ms) {
   j["covariance_order"] = order;
   j["std"] = result.value("std", Json());
   j["eps_res"] = result.value("eps_res", Json());
-  for (const char* k : {"expected_error_px", "expected_error_unit_px", "expected_error_limited_by"}) {
+  for (const char* k : {"expected_error_px", "expected_error_p90_px", "expected_error_unit_px", "expected_error_limited_by"}) {
     j[k] = result.value(k, Json());
   }
   for (const char* k : {"eps_test", "eps_gt", "ground_truth", "operator_attempts", "failure"}) {

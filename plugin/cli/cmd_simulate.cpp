@@ -52,9 +52,10 @@ void print_text_summary(const SimulateOptions& o, const Json& j, double wall_ms)
       j["converged"].get<bool>() ? "converged" : "NOT converged", j["keyframes"].get<int>(),
       j["frames_processed"].get<int>(), wall_ms / 1000.0, num_or(j, "eps_res", -1),
       num_or(j, "eps_test", -1), num_or(j, "eps_gt", -1));
-  if (j["expected_error_px"].is_number()) {
-    std::printf("  expected error %.3f px (the calibration's own prediction of eps_gt's RMS)\n",
-                j["expected_error_px"].get<double>());
+  if (j["expected_error_px"].is_number() && j["expected_error_p90_px"].is_number()) {
+    std::printf("  expected error %.3f px RMS, 9 of 10 such calibrations within %.3f px (the "
+                "calibration's own prediction of eps_gt)\n",
+                j["expected_error_px"].get<double>(), j["expected_error_p90_px"].get<double>());
   }
   const Json none = Json::object();
   const Json& truth = j.contains("ground_truth") ? j["ground_truth"] : none;

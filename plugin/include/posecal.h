@@ -217,8 +217,9 @@ typedef struct posecal_image {
  *   view candidates"),
  *   "view_must_serve_target" (false; true: a view must also reduce the targeted parameter's
  *   variance at least as much as the rule's pose),
- *   "accuracy_px" (unset; a number in [0.001, 100]: the session converges when the expected
- *   projection error, "expected_error_px" of the status and result, is at most this, and ends
+ *   "accuracy_px" (unset; a number in [0.001, 100]: the session converges when the 90th
+ *   percentile of the projection error it predicts, "expected_error_p90_px" of the status and
+ *   result, is at most this (9 of 10 such calibrations stay within it), and ends
  *   as not converged at max_keyframes with a reason naming the error reached and the parameter
  *   that holds it back; null unsets it; with method "paper" or "reference-std", which stop on
  *   the ratio test, POSECAL_E_INVALID_ARGUMENT)

@@ -195,6 +195,7 @@ Json status_json(posecal_session* s) {
     j["image_height"] = nullptr;
     j["parameters"] = Json::object();
     j["expected_error_px"] = nullptr;
+    j["expected_error_p90_px"] = nullptr;
     return j;
   }
   const FrameReport& r = eng->last_report();
@@ -217,6 +218,7 @@ Json status_json(posecal_session* s) {
   if (eng->state() == EngineState::kFailed) j["failure"] = eng->failure_reason();
   const ExpectedError* expected = eng->expected_error();
   j["expected_error_px"] = expected ? abi::number(expected->rms_px) : Json(nullptr);
+  j["expected_error_p90_px"] = expected ? abi::number(expected->p90_px) : Json(nullptr);
   Json params = Json::object();
   for (const auto& p : eng->parameters()) {
     params[p.name] = {{"value", abi::number(p.value)},

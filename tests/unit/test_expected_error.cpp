@@ -157,7 +157,7 @@ struct AccuracyRun {
   bool converged = false;
   std::string failure;
   int keyframes = 0;
-  double expected = NAN, eps_gt_rms = NAN;
+  double expected = NAN, expected_p90 = NAN, eps_gt_rms = NAN;
 };
 
 AccuracyRun run_with_accuracy(int seed, double accuracy_px, int max_keyframes) {
@@ -180,6 +180,7 @@ AccuracyRun run_with_accuracy(int seed, double accuracy_px, int max_keyframes) {
   out.failure = eng.failure_reason();
   out.keyframes = eng.keyframes();
   out.expected = eng.expected_error()->rms_px;
+  out.expected_p90 = eng.expected_error()->p90_px;
   out.eps_gt_rms =
       realised_rms(so.truth, eng.result()->model, kExpectedErrorCols, kExpectedErrorRows);
   return out;
@@ -190,9 +191,11 @@ AccuracyRun run_with_accuracy(int seed, double accuracy_px, int max_keyframes) {
 TEST(ExpectedError, AccuracyPxIsTheStopRule) {
   const AccuracyRun run = run_with_accuracy(1, 0.3, 30);
   ASSERT_TRUE(run.converged) << run.failure;
-  EXPECT_LE(run.expected, 0.3);
-  std::printf("accuracy_px 0.3: %d keyframes, expected %.3f px, realised %.3f px\n", run.keyframes,
-              run.expected, run.eps_gt_rms);
+  // The stop figure is the 90th percentile of the realised error, which lies above the RMS.
+  EXPECT_LE(run.expected_p90, 0.3);
+  EXPECT_LT(run.expected, run.expected_p90);
+  std::printf("accuracy_px 0.3: %d keyframes, expected %.3f px (p90 %.3f px), realised %.3f px\n",
+              run.keyframes, run.expected, run.expected_p90, run.eps_gt_rms);
   EXPECT_LT(run.eps_gt_rms, 0.3 * 2);  // one draw: loose here, measured over many in the benchmark
 }
 

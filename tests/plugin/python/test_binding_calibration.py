@@ -56,6 +56,7 @@ class Calibration(unittest.TestCase):
             self.assertGreater(r["expected_error_px"], 0)
             self.assertIn(r["expected_error_limited_by"], r["covariance_order"])
             self.assertAlmostEqual(s.status["expected_error_px"], r["expected_error_px"], places=9)
+            self.assertAlmostEqual(s.status["expected_error_p90_px"], r["expected_error_p90_px"], places=9)
             grid = s.expected_error_map()
             self.assertEqual((len(grid), len(grid[0])), (23, 40))
             rms = (sum(v * v for row in grid for v in row) / (40 * 23)) ** 0.5

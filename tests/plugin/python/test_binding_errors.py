@@ -77,6 +77,7 @@ class Errors(unittest.TestCase):
             self.assertError(posecal.StateError, errors.E_STATE, s.last_frame)
             self.assertError(posecal.StateError, errors.E_STATE, s.expected_error_map)
             self.assertIsNone(s.status["expected_error_px"])
+            self.assertIsNone(s.status["expected_error_p90_px"])
             self.assertTrue(s.step())
             self.assertFalse(s.finished)
             self.assertError(posecal.StateError, errors.E_STATE, s.skip_target)
