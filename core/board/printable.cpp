@@ -5,13 +5,14 @@
 
 #include <cmath>
 #include <cstdio>
-#include <fstream>
+#include <string_view>
 #include <opencv2/aruco/charuco.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 #include <sstream>
 
 #include "board/board_internal.hpp"
+#include "common/atomic_file.hpp"
 #include "common/error.hpp"
 
 namespace posecal {
@@ -106,6 +107,15 @@ std::string Board::pdf_content(double margin_m, double page_h) const {
   return content.str();
 }
 
+namespace {
+
+void write_or_throw(const std::string& path, std::string_view bytes) {
+  std::string error;
+  if (!write_file_atomic(path, bytes, &error)) throw Error(ErrorCode::kIo, error);
+}
+
+}  // namespace
+
 void Board::write_printable(const std::string& path, double dpi, double margin_m) const {
   if (!(dpi >= 50 && dpi <= 2400)) {
     throw Error(ErrorCode::kInvalidArgument, "printable target: dpi must be in [50, 2400]");
@@ -119,9 +129,7 @@ void Board::write_printable(const std::string& path, double dpi, double margin_m
     const double pt_per_m = 72.0 / 0.0254;
     const double page_w = (size_m.width + 2 * margin_m) * pt_per_m;
     const double page_h = (size_m.height + 2 * margin_m) * pt_per_m;
-    std::ofstream out(path, std::ios::binary);
-    out << pdf_document(pdf_content(margin_m, page_h), page_w, page_h);
-    if (!out) throw Error(ErrorCode::kIo, "cannot write '" + path + "'");
+    write_or_throw(path, pdf_document(pdf_content(margin_m, page_h), page_w, page_h));
     return;
   }
   if (ext != ".png" && ext != ".PNG") {
@@ -143,9 +151,7 @@ void Board::write_printable(const std::string& path, double dpi, double margin_m
   std::vector<uchar> png;
   if (!cv::imencode(".png", out, png)) throw Error(ErrorCode::kIo, "PNG encoding failed");
   png_set_dpi(png, dpi);
-  std::ofstream f(path, std::ios::binary);
-  f.write(reinterpret_cast<const char*>(png.data()), static_cast<std::streamsize>(png.size()));
-  if (!f) throw Error(ErrorCode::kIo, "cannot write '" + path + "'");
+  write_or_throw(path, std::string_view(reinterpret_cast<const char*>(png.data()), png.size()));
 }
 
 }  // namespace posecal

@@ -4,6 +4,7 @@
 #include <fstream>
 #include <opencv2/core/persistence.hpp>
 
+#include "common/atomic_file.hpp"
 #include "common/clock.hpp"
 #include "common/error.hpp"
 
@@ -69,13 +70,14 @@ CameraModel read_camera_model(const std::string& path) {
 
 void write_camera_model(const std::string& path, const CameraModel& model,
                         const CalibrationFileExtras& extras) {
+  // Composed in memory, then written atomically: a full disk or a kill leaves the old file.
+  const bool json = path.size() >= 5 && path.compare(path.size() - 5, 5, ".json") == 0;
   cv::FileStorage fs;
   try {
-    if (!fs.open(path, cv::FileStorage::WRITE)) {
-      throw Error(ErrorCode::kIo, "cannot write calibration file '" + path + "'");
-    }
+    fs.open("", cv::FileStorage::WRITE | cv::FileStorage::MEMORY |
+                    (json ? cv::FileStorage::FORMAT_JSON : cv::FileStorage::FORMAT_YAML));
   } catch (const cv::Exception& e) {
-    throw Error(ErrorCode::kIo, "cannot write calibration file '" + path + "': " + e.msg);
+    throw Error(ErrorCode::kInternal, "cannot compose calibration file '" + path + "': " + e.msg);
   }
   fs << "calibration_time" << utc_now_iso8601();
   if (extras.nr_of_frames >= 0) fs << "nr_of_frames" << extras.nr_of_frames;
@@ -98,7 +100,9 @@ void write_camera_model(const std::string& path, const CameraModel& model,
                   const_cast<double*>(extras.param_std.data()));
   }
   for (const auto& [key, value] : extras.strings) fs << key << value;
-  fs.release();
+  const std::string text = fs.releaseAndGetString();
+  std::string error;
+  if (!write_file_atomic(path, text, &error)) throw Error(ErrorCode::kIo, error);
 }
 
 }  // namespace posecal

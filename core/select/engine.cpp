@@ -25,6 +25,18 @@ const char* engine_state_name(EngineState s) {
   return "unknown";
 }
 
+bool engine_state_from_name(const std::string& name, EngineState* s) {
+  for (EngineState e : {EngineState::kWaitingForBoard, EngineState::kBootstrapping, EngineState::kInitialPose1,
+                        EngineState::kInitialPose2, EngineState::kRefining, EngineState::kConverged,
+                        EngineState::kFailed}) {
+    if (name == engine_state_name(e)) {
+      *s = e;
+      return true;
+    }
+  }
+  return false;
+}
+
 const char* engine_event_name(EngineEvent::Kind k) {
   switch (k) {
     case EngineEvent::Kind::kStateChanged: return "state_changed";
@@ -325,6 +337,12 @@ void CalibrationEngine::Impl::capture(const Detection& det) {
     return;
   }
   if (!recalibrate()) return;  // same target again
+  after_calibration();
+}
+
+// After a keyframe's calibration (and after a restore): converged, failed at the cap, or the
+// next refinement target.
+void CalibrationEngine::Impl::after_calibration() {
   if (opt.accuracy_px) return continue_towards_accuracy();
   if (!all_converged() && static_cast<int>(keyframes.size()) < opt.max_keyframes) {
     set_state(EngineState::kRefining);

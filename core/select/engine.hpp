@@ -34,6 +34,21 @@ enum class EngineState {
   kFailed,
 };
 const char* engine_state_name(EngineState s);
+// The state of a name engine_state_name gives; false for an unknown name.
+bool engine_state_from_name(const std::string& name, EngineState* s);
+
+// What a journal keeps of one keyframe so that the engine can be rebuilt from it
+// (CalibrationEngine::restore): the detection, the state and target it was captured in, and
+// what the engine concluded after it.
+struct KeyframeRecord {
+  Observation observation;
+  EngineState state_before = EngineState::kInitialPose1;  // the state it was captured in
+  int target_param = -1;                   // the parameter it was captured for (-1: initial)
+  EngineState state_after = EngineState::kInitialPose2;
+  std::vector<double> estimate_after;      // the intrinsics after it (bit for bit)
+  std::vector<bool> converged_after;       // per parameter
+  std::string failure;                     // state_after kFailed: why
+};
 
 struct EngineOptions {
   // A named method: the members it sets (pose_candidates, prospective_convergence,
@@ -209,6 +224,17 @@ class CalibrationEngine {
   const ExpectedError* expected_error() const;
   std::vector<ParameterStatus> parameters() const;
   const std::vector<Observation>& keyframe_observations() const;
+  // The record of keyframe i (0-based) as the engine stands now: call it right after the
+  // process() that captured it, as the session's journal does.
+  KeyframeRecord keyframe_record(int i, EngineState state_before) const;
+  // Rebuilds the engine from journalled keyframes (in order) before any frame is processed:
+  // each calibration is recomputed with the same warm starts, so the last one equals the one
+  // before the journal was cut bit for bit (returns whether it does: the recomputed intrinsics
+  // equal the last record's estimate_after), then the convergence flags and the state are
+  // taken from the last record and the next target is chosen. Events are not emitted while
+  // restoring. Error(kState) after a frame was processed, kInvalidArgument for records that do
+  // not fit the engine (parameter counts, states).
+  bool restore(const std::vector<KeyframeRecord>& records);
   const FrameReport& last_report() const;
   const Board& board() const;
   const EngineOptions& options() const;

@@ -1,5 +1,6 @@
 // Internal to select/: the engine's state, shared by the files that implement it:
 //   engine.cpp        the state machine: frames in, states, keyframe capture, recalibration
+//   restore.cpp       keyframe records for the session journal, and the engine rebuilt from them
 //   bootstrap.cpp     the single-view focal-length fit before the first target (paper §3.4)
 //   convergence.cpp   the ratio test and the prospective test (paper §4.1)
 //   target_choice.cpp MaxIOD and the choice of the next target among rule poses and views
@@ -80,6 +81,7 @@ struct CalibrationEngine::Impl {
   void capture_step(const Detection& det, FrameReport* r);
   void move_target_back(int corners);
   void capture(const Detection& det);
+  void after_calibration();
   // Recalibrates with the keyframes; false (keyframe dropped, event emitted) if it is rejected.
   bool recalibrate();
   bool scoring() const { return opt.pose_candidates > 1 || opt.prospective_convergence; }

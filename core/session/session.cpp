@@ -1,5 +1,8 @@
 #include "session/session.hpp"
 
+#include <sys/stat.h>
+
+#include "common/clock.hpp"
 #include "common/error.hpp"
 
 namespace posecal {
@@ -54,6 +57,7 @@ void CalibrationSession::ensure_engine(cv::Size size) {
     return;
   }
   engine_ = std::make_unique<CalibrationEngine>(size, options_);
+  restore_from_journal(size);
   engine_->set_event_callback([this](const EngineEvent& e) { emit({SessionEvent::Kind::kEngine, e, ""}); });
 }
 
@@ -83,7 +87,10 @@ FrameReport CalibrationSession::process(const cv::Mat& image, std::shared_ptr<vo
   last_frame_ = image;
   last_hold_ = std::move(hold);
   ++frames_;
+  const EngineState state_before = engine_->state();
+  const int keyframes_before = engine_->keyframes();
   const FrameReport r = engine_->process(image);
+  journal_frame(state_before, keyframes_before, image);
   camera_->guide(engine_->guidance_info());
   if (camera_->take_pose_reached() && !finished()) {
     try {
@@ -135,6 +142,111 @@ StepStatus CalibrationSession::step(int timeout_ms) {
   }
   process(frame.image, frame.hold);
   return StepStatus::kFrame;
+}
+
+// ---- the journal ----
+
+namespace {
+
+bool file_exists(const std::string& path) {
+  struct stat st {};
+  return ::lstat(path.c_str(), &st) == 0;
+}
+
+JournalHeader header_for(const DeviceInfo& d, const std::string& config) {
+  JournalHeader h;
+  h.camera_uri = d.uri;
+  h.camera_id = d.id;
+  h.camera_vendor = d.vendor;
+  h.camera_model = d.model;
+  h.camera_serial = d.serial;
+  h.config = config;
+  h.posecal_version = POSECAL_VERSION_STRING;
+  return h;
+}
+
+// Why the journal cannot be resumed by this session ("" if it can).
+std::string mismatch(const JournalContents& j, const DeviceInfo& d, const std::string& config) {
+  if (j.header.camera_id != d.id || j.header.camera_serial != d.serial) {
+    return "it was recorded with camera '" + j.header.camera_id + "' (serial '" + j.header.camera_serial +
+           "'), this session's camera is '" + d.id + "' (serial '" + d.serial + "')";
+  }
+  if (j.header.config != config) {
+    return "it was recorded with another session config (" + j.header.config + ", now " + config + ")";
+  }
+  return "";
+}
+
+}  // namespace
+
+void CalibrationSession::open_journal(const std::string& path, const std::string& config, bool images,
+                                      bool resume) {
+  if (engine_ || started_) throw Error(ErrorCode::kState, "session: the journal is opened before the first frame");
+  journal_images_ = images;
+  journal_status_ = JournalStatus{};
+  journal_status_.path = path;
+  const DeviceInfo& camera = camera_->info();
+  if (file_exists(path) && !resume) {
+    const std::string old = path + "." + utc_now_iso8601() + ".old";
+    if (::rename(path.c_str(), old.c_str()) != 0) {
+      throw Error(ErrorCode::kIo, "cannot set journal '" + path + "' aside as '" + old + "'");
+    }
+    journal_status_.note = "the previous journal was kept as '" + old + "'";
+  }
+  if (file_exists(path)) {
+    JournalContents j = read_journal(path);
+    if (j.has_header) {
+      const std::string why = mismatch(j, camera, config);
+      if (!why.empty()) {
+        throw Error(ErrorCode::kInvalidArgument, "journal '" + path + "' cannot be resumed: " + why +
+                                                     "; set \"resume\": false to start afresh (the old journal is kept)");
+      }
+      journal_ = JournalWriter::resume(path, j.valid_bytes);
+      journal_status_.resumed_keyframes = static_cast<int>(j.keyframes.size());
+      journal_status_.note = j.damage;
+      resumed_ = std::move(j);
+      return;
+    }
+    journal_status_.note = "the journal's header was cut (" + j.damage + "): started afresh";
+  }
+  journal_ = JournalWriter::create(path, header_for(camera, config));
+}
+
+void CalibrationSession::restore_from_journal(cv::Size size) {
+  if (!journal_) return;
+  if (resumed_.image_size.width > 0 && resumed_.image_size != size) {
+    throw Error(ErrorCode::kInvalidArgument,
+                "journal '" + journal_->path() + "' was recorded at " + std::to_string(resumed_.image_size.width) +
+                    "x" + std::to_string(resumed_.image_size.height) + ", the camera delivers " +
+                    std::to_string(size.width) + "x" + std::to_string(size.height));
+  }
+  try {
+    if (resumed_.image_size.width == 0) journal_->append_engine(size, locked_);
+  } catch (const Error& e) {
+    journal_failed(e);
+  }
+  if (!resumed_.keyframes.empty()) journal_status_.identical = engine_->restore(resumed_.keyframes);
+  resumed_ = JournalContents{};
+}
+
+void CalibrationSession::journal_frame(EngineState state_before, int keyframes_before, const cv::Mat& image) {
+  if (!journal_) return;
+  try {
+    const int n = engine_->keyframes();
+    if (n > keyframes_before) {
+      journal_->append_keyframe(n, engine_->keyframe_record(n - 1, state_before),
+                                journal_images_ ? image : cv::Mat());
+    }
+    if (finished()) journal_->append_end(engine_state_name(engine_->state()));
+  } catch (const Error& e) {
+    journal_failed(e);
+  }
+}
+
+void CalibrationSession::journal_failed(const Error& e) {
+  journal_.reset();
+  journal_status_.note = std::string("the journal stopped: ") + e.what();
+  emit({SessionEvent::Kind::kCameraError, std::nullopt, journal_status_.note});
 }
 
 }  // namespace posecal

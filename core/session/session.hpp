@@ -13,6 +13,7 @@
 
 #include "device/camera.hpp"
 #include "select/engine.hpp"
+#include "session/journal.hpp"
 
 namespace posecal {
 
@@ -51,10 +52,32 @@ class CalibrationSession {
 
   void set_event_callback(std::function<void(const SessionEvent&)> cb);
 
+  // Keeps a journal at `path` (session/journal.hpp), before the first frame. `config` is the
+  // session config as canonical JSON without the journal's own keys. An existing journal of
+  // the same camera (id and serial) and config is resumed: its keyframes are restored into the
+  // engine at the first frame and new ones appended. With `resume` false an existing journal is
+  // renamed to PATH.<UTC time>.old and a new one started. Throws Error(kInvalidArgument) naming
+  // the journal and what differs for another camera's or config's journal, Error(kIo) if it
+  // cannot be read or written.
+  void open_journal(const std::string& path, const std::string& config, bool images, bool resume);
+  struct JournalStatus {
+    std::string path;       // "" without a journal
+    int resumed_keyframes = 0;
+    std::string note;       // what was dropped from a damaged journal, what was renamed, or why
+                            // the journal stopped (a write error); "" if nothing
+    std::optional<bool> identical;  // after a resume: the recomputed calibration equals the last
+                                    // journalled one bit for bit
+  };
+  const JournalStatus& journal_status() const { return journal_status_; }
+
  private:
   void ensure_engine(cv::Size size);
   FrameReport process(const cv::Mat& image, std::shared_ptr<void> hold);
   void emit(const SessionEvent& e);
+  void restore_from_journal(cv::Size size);
+  void journal_frame(EngineState state_before, int keyframes_before, const cv::Mat& image);
+  // A journal write that failed: reported once, and the journal stops (the calibration goes on).
+  void journal_failed(const Error& e);
 
   std::unique_ptr<Camera> camera_;
   EngineOptions options_;
@@ -68,6 +91,10 @@ class CalibrationSession {
   cv::Mat last_frame_;
   std::shared_ptr<void> last_hold_;  // keeps a zero-copy backend buffer alive with last_frame_
   std::chrono::steady_clock::time_point t0_;
+  std::unique_ptr<JournalWriter> journal_;
+  bool journal_images_ = false;
+  JournalContents resumed_;  // the journal read at open_journal, until the first frame
+  JournalStatus journal_status_;
 };
 
 }  // namespace posecal

@@ -113,6 +113,10 @@ void set_Text(const char* key, double, double, const char*, BoardSpec& m, const 
   m = BoardSpec::parse(value_as<std::string>(key, v, "a string"));
 }
 SessionKeyValue get_Text(const char*, const BoardSpec& m) { return m.to_string(); }
+void set_Text(const char* key, double, double, const char*, std::string& m, const SessionKeyValue& v) {
+  m = value_as<std::string>(key, v, "a string");
+}
+SessionKeyValue get_Text(const char*, const std::string& m) { return m; }
 
 void set_TextList(const char* key, double, double, const char*, std::vector<std::string>& m,
                   const SessionKeyValue& v) {

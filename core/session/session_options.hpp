@@ -15,6 +15,9 @@ namespace posecal {
 struct SessionOptions {
   EngineOptions engine;
   bool lock_settings = true;  // lock exposure, gain and focus before the first frame
+  std::string journal;        // the session journal's path ("" = none; session/journal.hpp)
+  bool journal_images = false;
+  bool resume = true;         // resume an existing journal (false: set it aside, start afresh)
   bool is_valid(std::string* error) const { return engine.is_valid(error); }
 };
 

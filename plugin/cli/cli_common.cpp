@@ -1,8 +1,12 @@
 #include "cli_common.hpp"
 
+#include <algorithm>
+#include <cerrno>
 #include <cmath>
 #include <cstdlib>
 #include <mutex>
+
+#include "common/atomic_file.hpp"
 
 namespace posecal::cli {
 
@@ -51,14 +55,14 @@ Context::Context() { check(posecal_context_create(nullptr, &ctx_)); }
 Context::~Context() { posecal_context_destroy(ctx_); }
 
 Session::Session(posecal_context* ctx, const std::string& uri, const Json& config) {
-  check(posecal_session_open(ctx, uri.c_str(), config.dump().c_str(), &s_));
+  check(posecal_session_open(ctx, uri.c_str(), json_text(config).c_str(), &s_));
 }
 
 Session::~Session() { posecal_session_close(s_); }
 
 void write_line(FILE* out, const Json& j) {
   std::lock_guard<std::mutex> lock(g_out_mutex);
-  std::fprintf(out, "%s\n", j.dump().c_str());
+  std::fprintf(out, "%s\n", json_text(j).c_str());
   std::fflush(out);
 }
 
@@ -76,9 +80,47 @@ void print_event_line(void* user, const char* kind, const char* payload) {
   write_line(sink->out, j);
 }
 
+std::string json_text(const Json& j, int indent) {
+  return j.dump(indent, ' ', false, Json::error_handler_t::replace);
+}
+
+void check_output_file(const std::string& path, const std::vector<std::string>& extensions) {
+  const bool known = std::any_of(extensions.begin(), extensions.end(), [&](const std::string& e) {
+    return path.size() > e.size() && path.compare(path.size() - e.size(), e.size(), e) == 0;
+  });
+  if (!known) {
+    std::string list;
+    for (const auto& e : extensions) list += (list.empty() ? "" : ", ") + e;
+    throw UsageError{"output file '" + path + "': use " + list};
+  }
+  std::string error;
+  if (!check_output_path(path, &error)) throw Failure{POSECAL_E_IO, error};
+}
+
+void write_text_file(const std::string& path, const std::string& text) {
+  std::string error;
+  if (!write_file_atomic(path, text, &error)) throw Failure{POSECAL_E_IO, error};
+}
+
+bool close_stdout() {
+  errno = 0;
+  bool ok = std::fflush(stdout) == 0 && !std::ferror(stdout);
+  int err = errno;
+  if (std::fclose(stdout) != 0 && ok) {
+    ok = false;
+    err = errno;
+  }
+  if (!ok) {
+    std::fprintf(stderr, "posecal: error writing standard output%s\n",
+                 err ? (": " + errno_text(err)).c_str() : "");
+  }
+  return ok;
+}
+
 Json summary(const Json& result, double wall_ms) {
   Json j;
   j["converged"] = result.value("converged", false);
+  j["interrupted"] = result.value("interrupted", false);
   j["state"] = result.value("state", "");
   j["keyframes"] = result.value("keyframes", 0);
   j["frames_processed"] = result.value("frames_processed", 0);
@@ -93,7 +135,8 @@ Json summary(const Json& result, double wall_ms) {
   for (const char* k : {"expected_error_px", "expected_error_p90_px", "expected_error_unit_px", "expected_error_limited_by"}) {
     j[k] = result.value(k, Json());
   }
-  for (const char* k : {"eps_test", "eps_gt", "ground_truth", "operator_attempts", "failure"}) {
+  for (const char* k : {"eps_test", "eps_gt", "ground_truth", "operator_attempts", "failure", "journal",
+                        "resumed_keyframes", "resume_identical", "journal_note"}) {
     if (result.contains(k)) j[k] = result[k];
   }
   j["camera"] = result.value("camera", Json());

@@ -86,6 +86,21 @@ void print_event_line(void* user, const char* kind, const char* payload);
 // covariance_order (whatever the lens model's parameters are).
 Json summary(const Json& result, double wall_ms);
 
+// JSON text of `j` (indent < 0: one line). Text from outside (a URI, a camera's name) may be
+// invalid UTF-8: it is replaced with U+FFFD, never a reason to lose the output.
+std::string json_text(const Json& j, int indent = -1);
+
+// Before any work: `path` (a result file with one of `extensions`) can be written. Throws
+// UsageError for a wrong extension, Failure(POSECAL_E_IO) naming the cause otherwise.
+void check_output_file(const std::string& path, const std::vector<std::string>& extensions);
+// Writes `text` to `path` atomically (temporary file, fsync, rename); Failure(POSECAL_E_IO)
+// naming the cause; the previous file is kept on failure.
+void write_text_file(const std::string& path, const std::string& text);
+
+// Flushes and closes stdout as coreutils' close_stdout does; false (with a message on stderr)
+// if anything written to it was lost (a full disk, a closed pipe, /dev/full).
+bool close_stdout();
+
 // j[key] if it is a number, else `def`.
 double num_or(const Json& j, const std::string& key, double def);
 double ms_since(Clock::time_point t0);

@@ -7,6 +7,7 @@
 #include <memory>
 
 #include "commands.hpp"
+#include "interrupt.hpp"
 #include "live_window.hpp"
 #include "robot_protocol.hpp"
 #include "session_flags.hpp"
@@ -63,7 +64,7 @@ int calibrate_images(const CalibrateOptions& o) {
   const Json j = Json::parse(
       fetch_json([&](char* b, size_t* s) { return posecal_calibration_json(cal, b, s); }));
   if (o.json) {
-    std::printf("%s\n", j.dump().c_str());
+    std::printf("%s\n", json_text(j).c_str());
   } else {
     print_images_result(o, j);
   }
@@ -74,6 +75,7 @@ int calibrate_images(const CalibrateOptions& o) {
 
 struct LiveRun {
   bool stopped_by_user = false;
+  bool interrupted = false;  // SIGINT / SIGTERM
   double wall_ms = 0;
 };
 
@@ -90,6 +92,11 @@ LiveRun run_live(posecal_session* s, const CalibrateOptions& o, bool robot) {
   std::string last_guidance;
   int timeouts = 0;
   while (true) {
+    if (interrupt_requested()) {
+      check(posecal_session_interrupt(s));
+      run.interrupted = true;
+      break;
+    }
     if (ms_since(t0) > o.max_seconds * 1000) {
       std::fprintf(stderr, "posecal calibrate: stopped after %.0f s without finishing\n",
                    o.max_seconds);
@@ -123,6 +130,10 @@ LiveRun run_live(posecal_session* s, const CalibrateOptions& o, bool robot) {
 }
 
 int report_live(posecal_session* s, const CalibrateOptions& o, bool robot, const LiveRun& run) {
+  if (!has_result(s) && run.interrupted) {
+    std::fprintf(stderr, "posecal calibrate: interrupted before two keyframes: nothing to save\n");
+    return interrupt_exit_code();
+  }
   if (!has_result(s)) {
     throw Failure{POSECAL_E_STATE,
                   std::string("no calibration: fewer than two keyframes were captured") +
@@ -138,10 +149,13 @@ int report_live(posecal_session* s, const CalibrateOptions& o, bool robot, const
     write_line(stdout, line);
   } else {
     std::printf("%s after %d keyframes; eps_res %.3f px\n",
-                j["converged"].get<bool>() ? "converged" : "NOT converged",
+                run.interrupted               ? "INTERRUPTED"
+                : j["converged"].get<bool>() ? "converged"
+                                             : "NOT converged",
                 j["keyframes"].get<int>(), num_or(j, "eps_res", -1));
     if (!o.out.empty()) std::printf("written %s\n", o.out.c_str());
   }
+  if (run.interrupted) return interrupt_exit_code();
   return j["converged"].get<bool>() ? kOk : kNotConverged;
 }
 
@@ -163,6 +177,7 @@ int calibrate_camera(const CalibrateOptions& o) {
 }
 
 int run_calibrate(const CalibrateOptions& o) {
+  if (!o.out.empty()) check_output_file(o.out, {".yml", ".yaml", ".json"});
   if (!o.camera.empty()) return calibrate_camera(o);
   if (!o.images.empty()) return calibrate_images(o);
   throw UsageError{"calibrate needs --camera URI or --images DIR"};

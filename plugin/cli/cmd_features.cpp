@@ -45,7 +45,7 @@ int run_features(const FeaturesOptions& o) {
     return posecal_camera_features(c.get(), o.camera.c_str(), b, n);
   }));
   if (o.json) {
-    std::printf("%s\n", j.dump().c_str());
+    std::printf("%s\n", json_text(j).c_str());
     return kOk;
   }
   if (j.empty()) std::printf("%s has no settings\n", o.camera.c_str());

@@ -20,7 +20,7 @@ int run_grab(const GrabOptions& o) {
                                n);
   }));
   if (o.json) {
-    std::printf("%s\n", j.dump().c_str());
+    std::printf("%s\n", json_text(j).c_str());
     return kOk;
   }
   for (const auto& f : j["files"]) std::printf("%s\n", f["file"].get<std::string>().c_str());

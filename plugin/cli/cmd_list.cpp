@@ -12,7 +12,7 @@ int run_list(bool json) {
   const Json cams = Json::parse(
       fetch_json([&](char* b, size_t* s) { return posecal_list_cameras(c.get(), b, s); }));
   if (json) {
-    std::printf("%s\n", cams.dump().c_str());
+    std::printf("%s\n", json_text(cams).c_str());
     return kOk;
   }
   if (cams.empty()) std::printf("no cameras found\n");

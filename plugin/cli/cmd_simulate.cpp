@@ -5,6 +5,7 @@
 
 #include "commands.hpp"
 #include "common/percent_encoding.hpp"
+#include "interrupt.hpp"
 #include "session_flags.hpp"
 
 namespace posecal::cli {
@@ -49,7 +50,10 @@ void print_text_summary(const SimulateOptions& o, const Json& j, double wall_ms)
   std::printf(
       "%s after %d keyframes (%d frames, %.1f s); eps_res %.3f px, eps_test %.3f px, eps_gt "
       "%.3f px\n",
-      j["converged"].get<bool>() ? "converged" : "NOT converged", j["keyframes"].get<int>(),
+      j.value("interrupted", false) ? "INTERRUPTED"
+      : j["converged"].get<bool>() ? "converged"
+                                   : "NOT converged",
+      j["keyframes"].get<int>(),
       j["frames_processed"].get<int>(), wall_ms / 1000.0, num_or(j, "eps_res", -1),
       num_or(j, "eps_test", -1), num_or(j, "eps_gt", -1));
   if (j["expected_error_px"].is_number() && j["expected_error_p90_px"].is_number()) {
@@ -68,28 +72,35 @@ void print_text_summary(const SimulateOptions& o, const Json& j, double wall_ms)
 }
 
 int run_simulate(const SimulateOptions& o) {
+  if (!o.out.empty()) check_output_file(o.out, {".yml", ".yaml", ".json"});
   const auto t0 = Clock::now();
   Context c;
   Session s(c.get(), sim_uri(o), o.session->config());
   EventSink sink{stderr, ""};
   if (o.events) check(posecal_session_set_callback(s.get(), print_event_line, &sink));
   for (int frames = 0; frames < o.max_frames; ++frames) {
+    if (interrupt_requested()) {
+      check(posecal_session_interrupt(s.get()));
+      break;
+    }
     const posecal_status st = posecal_session_step(s.get(), 1000);
     if (st == POSECAL_E_STATE) break;  // finished
     check(st);
   }
   const double wall_ms = ms_since(t0);
   if (!has_result(s.get())) {
+    if (interrupt_requested()) return interrupt_exit_code();
     throw Failure{POSECAL_E_STATE, "no calibration: fewer than two keyframes"};
   }
   if (!o.out.empty()) check(posecal_session_save(s.get(), o.out.c_str()));
   Json j = summary(fetch_result(s.get()), wall_ms);
   if (o.json) j["expected_error_map"] = expected_error_map(s.get(), 16, 9);
   if (o.json) {
-    std::printf("%s\n", j.dump().c_str());
+    std::printf("%s\n", json_text(j).c_str());
   } else {
     print_text_summary(o, j, wall_ms);
   }
+  if (j.value("interrupted", false)) return interrupt_exit_code();
   return j["converged"].get<bool>() ? kOk : kNotConverged;
 }
 

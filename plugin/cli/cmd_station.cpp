@@ -8,6 +8,7 @@
 #include <thread>
 
 #include "commands.hpp"
+#include "interrupt.hpp"
 #include "session_flags.hpp"
 
 namespace posecal::cli {
@@ -22,8 +23,12 @@ struct StationOptions {
   std::unique_ptr<SessionFlags> session;
 };
 
+// A camera's outcome besides the exit codes: stopped by SIGINT / SIGTERM.
+constexpr int kInterrupted = -1;
+
 struct StationJob {
   std::string uri;
+  std::string journal;  // DIR/journal/<URI as a file name>.journal
   Json outcome;  // filled by the job's thread
   int exit = kFailure;
 };
@@ -65,6 +70,10 @@ void step_until_done(posecal_session* s, const StationOptions& o, const std::str
                      Clock::time_point t0) {
   int failures = 0;
   while (ms_since(t0) < o.max_seconds * 1000) {
+    if (interrupt_requested()) {
+      check(posecal_session_interrupt(s));
+      return;
+    }
     const posecal_status st = posecal_session_step(s, o.timeout_ms);
     if (st == POSECAL_E_STATE || st == POSECAL_E_NOT_FOUND) break;
     if (st == POSECAL_E_TIMEOUT || st == POSECAL_E_DEVICE) {
@@ -81,27 +90,37 @@ void step_until_done(posecal_session* s, const StationOptions& o, const std::str
 void calibrate_one(StationShared* shared, StationJob* job, Clock::time_point t0) {
   const StationOptions& o = *shared->options;
   Json& out = job->outcome;
-  Session s(shared->ctx, job->uri, shared->config);
+  Json config = shared->config;
+  config["journal"] = job->journal;
+  Session s(shared->ctx, job->uri, config);
   const Json camera = fetch_status(s.get())["camera"];
   out["camera"] = camera;
   EventSink sink{stderr, job->uri};
   if (o.events) check(posecal_session_set_callback(s.get(), print_event_line, &sink));
   step_until_done(s.get(), o, job->uri, t0);
+  out["interrupted"] = interrupt_requested();
   if (!has_result(s.get())) {
-    throw Failure{POSECAL_E_STATE, "no calibration: fewer than two keyframes were captured"};
+    throw Failure{POSECAL_E_STATE, std::string("no calibration: fewer than two keyframes were "
+                                               "captured") +
+                                       (interrupt_requested() ? " before the interrupt" : "")};
   }
   const std::string file = claim_file(shared, camera.value("id", ""));
   check(posecal_session_save(s.get(), file.c_str()));
   const Json result = fetch_result(s.get());
   out["converged"] = result.value("converged", false);
+  out["interrupted"] = result.value("interrupted", false);
   for (const char* k : {"state", "keyframes", "frames_processed", "eps_res"}) {
     out[k] = result.value(k, Json());
   }
   out["eps_test"] = result.value("eps_test", Json());
   out["eps_gt"] = result.value("eps_gt", Json());
+  out["journal"] = result.value("journal", Json());
+  out["resumed_keyframes"] = result.value("resumed_keyframes", 0);
+  out["resume_identical"] = result.value("resume_identical", Json());
   out["file"] = file;
   out["error"] = nullptr;
   job->exit = out["converged"].get<bool>() ? kOk : kNotConverged;
+  if (out["interrupted"].get<bool>()) job->exit = kInterrupted;
 }
 
 // A camera's thread: its outcome, whatever happens (one failed camera does not end the others).
@@ -115,7 +134,7 @@ void run_station_camera(StationShared* shared, StationJob* job) {
     out["converged"] = false;
     out["error"] = f.message;
     out["status"] = posecal_status_name(f.status);
-    job->exit = kFailure;
+    job->exit = out.value("interrupted", false) ? kInterrupted : kFailure;
   } catch (const std::exception& e) {
     out["converged"] = false;
     out["error"] = e.what();
@@ -127,7 +146,8 @@ void run_station_camera(StationShared* shared, StationJob* job) {
 void print_station_text(const Json& sum, const std::string& sum_path) {
   for (const auto& o : sum["cameras"]) {
     if (!o["error"].is_null()) {
-      std::printf("%-40s FAILED: %s\n", o["uri"].get<std::string>().c_str(),
+      std::printf("%-40s %s: %s\n", o["uri"].get<std::string>().c_str(),
+                  o.value("interrupted", false) ? "INTERRUPTED" : "FAILED",
                   o["error"].get<std::string>().c_str());
       continue;
     }
@@ -137,11 +157,19 @@ void print_station_text(const Json& sum, const std::string& sum_path) {
     }
     std::printf(
         "%-40s %s, %d keyframes, eps_res %.3f px%s -> %s\n", o["uri"].get<std::string>().c_str(),
-        o["converged"].get<bool>() ? "converged" : "NOT converged", o["keyframes"].get<int>(),
+        o.value("interrupted", false) ? "INTERRUPTED"
+        : o["converged"].get<bool>()   ? "converged"
+                                       : "NOT converged",
+        o["keyframes"].get<int>(),
         num_or(o, "eps_res", -1), eps_test, o["file"].get<std::string>().c_str());
   }
-  std::printf("%d of %d cameras converged in %.1f s; summary in %s\n", sum["converged"].get<int>(),
-              sum["total"].get<int>(), sum["wall_ms"].get<double>() / 1000, sum_path.c_str());
+  std::printf("%d of %d cameras converged in %.1f s%s; summary in %s\n",
+              sum["converged"].get<int>(), sum["total"].get<int>(),
+              sum["wall_ms"].get<double>() / 1000,
+              sum["interrupted"].get<int>() > 0
+                  ? (", " + std::to_string(sum["interrupted"].get<int>()) + " interrupted").c_str()
+                  : "",
+              sum_path.c_str());
 }
 
 // Runs every camera on its own thread; the summary of all of them.
@@ -155,6 +183,15 @@ Json run_cameras(const StationOptions& o, const std::vector<std::string>& uris, 
   const auto t0 = Clock::now();
   {
     std::vector<std::thread> threads;
+    // One journal per camera, named by its URI (a URI given twice gets -2, -3, ...): the same
+    // command run again resumes each camera.
+    std::set<std::string> journals;
+    for (size_t i = 0; i < uris.size(); ++i) {
+      std::string name = sanitise_id(uris[i]);
+      for (int k = 2; journals.count(name); ++k) name = sanitise_id(uris[i]) + "-" + std::to_string(k);
+      journals.insert(name);
+      jobs[i].journal = o.out_dir + "/journal/" + name + ".journal";
+    }
     for (size_t i = 0; i < uris.size(); ++i) {
       jobs[i].uri = uris[i];
       threads.emplace_back(run_station_camera, &shared, &jobs[i]);
@@ -162,17 +199,19 @@ Json run_cameras(const StationOptions& o, const std::vector<std::string>& uris, 
     for (auto& t : threads) t.join();
   }
   Json cams = Json::array();
-  int converged = 0;
+  int converged = 0, interrupted = 0;
   *exit = kOk;
   for (const auto& j : jobs) {
     cams.push_back(j.outcome);
     if (j.exit == kOk) ++converged;
+    if (j.exit == kInterrupted) ++interrupted;
     if (j.exit == kFailure) *exit = kFailure;  // a failed camera outweighs unconverged ones
     if (j.exit == kNotConverged && *exit == kOk) *exit = kNotConverged;
   }
   return {{"cameras", cams},        {"total", jobs.size()},
           {"converged", converged}, {"all_converged", converged == static_cast<int>(jobs.size())},
-          {"out_dir", o.out_dir},   {"wall_ms", ms_since(t0)}};
+          {"interrupted", interrupted}, {"out_dir", o.out_dir},
+          {"wall_ms", ms_since(t0)}};
 }
 
 int run_station(const StationOptions& o) {
@@ -184,18 +223,23 @@ int run_station(const StationOptions& o) {
     throw Failure{POSECAL_E_IO, "cannot create directory '" + o.out_dir + "'" +
                                     (ec ? ": " + ec.message() : std::string())};
   }
+  if (o.session->config().contains("journal")) {
+    throw UsageError{"station keeps one journal per camera in DIR/journal/; --journal is for one camera"};
+  }
+  std::filesystem::create_directories(o.out_dir + "/journal", ec);
+  const std::string sum_path = o.out_dir + "/summary.json";
+  check_output_file(sum_path, {".json"});  // before any camera is calibrated
   int exit = kOk;
   const Json sum = run_cameras(o, uris, &exit);
-  const std::string sum_path = o.out_dir + "/summary.json";
-  if (FILE* f = std::fopen(sum_path.c_str(), "w")) {
-    std::fprintf(f, "%s\n", sum.dump(2).c_str());
-    std::fclose(f);
-  } else {
-    std::fprintf(stderr, "posecal station: cannot write %s\n", sum_path.c_str());
+  try {
+    write_text_file(sum_path, json_text(sum, 2) + "\n");
+  } catch (const Failure& f) {
+    print_error_line("posecal station: " + f.message + " [" + posecal_status_name(f.status) + "]");
     exit = kFailure;
   }
+  if (interrupt_requested()) exit = interrupt_exit_code();
   if (o.json) {
-    std::printf("%s\n", sum.dump().c_str());
+    std::printf("%s\n", json_text(sum).c_str());
   } else {
     print_station_text(sum, sum_path);
   }
@@ -208,7 +252,8 @@ Command add_station(CLI::App* app) {
   auto o = std::make_shared<StationOptions>();
   CLI::App* cmd =
       app->add_subcommand("station", "calibrate several cameras concurrently (one thread each)");
-  cmd->footer("Writes DIR/<camera id>.<format> per camera and DIR/summary.json.\n" +
+  cmd->footer("Writes DIR/<camera id>.<format> per camera and DIR/summary.json; keeps each\n"
+              "camera's journal in DIR/journal/ (the same command again resumes each camera).\n" +
               target_spec_help());
   cmd->add_option("--cameras", o->cameras, "the cameras")
       ->type_name("URI,URI,...")

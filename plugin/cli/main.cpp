@@ -1,11 +1,13 @@
 // posecal command line. Built on the C ABI only (posecal.h), so every command also exercises
 // the interface that factory software uses.
 //
-// Exit codes: 0 success, 1 usage error, 2 failure, 3 finished but not converged.
+// Exit codes: 0 success, 1 usage error, 2 failure, 3 finished but not converged, 130 / 143
+// stopped by SIGINT / SIGTERM after saving what was calibrated (plugin/cli/interrupt.hpp).
 #include <cstring>
 #include <map>
 
 #include "commands.hpp"
+#include "interrupt.hpp"
 
 namespace posecal::cli {
 
@@ -21,7 +23,8 @@ std::string footer() {
          "\n"
          "URI:  sim://?seed=N&operator=person|robot&model=FILE, images://DIR, external,\n"
          "      aravis://ID, v4l2://STABLE_ID, v4l2:///dev/videoN\n"
-         "exit codes: 0 ok, 1 usage, 2 failure, 3 finished but not converged";
+         "exit codes: 0 ok, 1 usage, 2 failure, 3 finished but not converged,\n"
+         "      130 / 143 interrupted by SIGINT / SIGTERM (what was calibrated is saved)";
 }
 
 using Commands = std::map<std::string, Command>;
@@ -125,4 +128,9 @@ int run(int argc, char** argv) {
 
 }  // namespace posecal::cli
 
-int main(int argc, char** argv) { return posecal::cli::run(argc, argv); }
+int main(int argc, char** argv) {
+  posecal::cli::install_interrupt_handlers();
+  const int code = posecal::cli::run(argc, argv);
+  // Output lost to a full disk or a closed pipe is a failure, whatever the command did.
+  return posecal::cli::close_stdout() ? code : posecal::cli::kFailure;
+}

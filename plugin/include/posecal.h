@@ -222,7 +222,16 @@ typedef struct posecal_image {
  *   result, is at most this (9 of 10 such calibrations stay within it), and ends
  *   as not converged at max_keyframes with a reason naming the error reached and the parameter
  *   that holds it back; null unsets it; with method "paper" or "reference-std", which stop on
- *   the ratio test, POSECAL_E_INVALID_ARGUMENT)
+ *   the ratio test, POSECAL_E_INVALID_ARGUMENT),
+ *   "journal" (unset; a file path: every keyframe is appended to this journal and flushed to
+ *   disk when it is captured, so a kill loses at most the frame in flight; if the file exists
+ *   and was recorded with the same camera and config, the session resumes: its keyframes are
+ *   restored at the first frame, the calibration recomputed, and status/result say
+ *   "resumed_keyframes": N; another camera's or config's journal is POSECAL_E_INVALID_ARGUMENT
+ *   naming what differs; a journal cut by a kill resumes from its last complete record and
+ *   "journal_note" says so), "journal_images" (false; true: the journal also keeps each
+ *   keyframe's image as PNG), "resume" (true; false: an existing journal is renamed to
+ *   JOURNAL.<UTC time>.old and a new one started). docs/c-api.md, "Journal".
  * An unknown key is POSECAL_E_INVALID_ARGUMENT. Opening a camera may block up to ~3 s. The
  * camera starts streaming at the first posecal_session_step. */
 POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char* camera_uri,
@@ -301,6 +310,16 @@ POSECAL_API posecal_status posecal_session_result(posecal_session* session, char
  * POSECAL_E_STATE before the second keyframe. */
 POSECAL_API posecal_status posecal_session_save(posecal_session* session,
                                                 const char* path) POSECAL_NOEXCEPT;
+
+/* Stops the calibration gracefully, e.g. when the host is asked to quit: no further frame is
+ * processed (posecal_session_step and _feed return POSECAL_E_STATE), status and result say
+ * "interrupted": true and "finished": true, and what was calibrated so far can still be read
+ * (posecal_session_result) and saved (posecal_session_save writes "interrupted: true" and
+ * "converged: false" into the file). A calibration that has already finished keeps its outcome.
+ * Idempotent. Thread: any thread, also while another is inside posecal_session_step (that call
+ * finishes its frame first); also allowed in the event callback. Not async-signal-safe: from a
+ * signal handler set a flag and call this from a thread. */
+POSECAL_API posecal_status posecal_session_interrupt(posecal_session* session) POSECAL_NOEXCEPT;
 
 /* Events: called with a kind ("state_changed", "captured", "keyframe_rejected", "calibrated",
  * "parameter_converged", "target_changed", "target_skipped", "camera_disconnected",

@@ -7,6 +7,7 @@
 #include <opencv2/imgcodecs.hpp>
 
 #include "abi_common.hpp"
+#include "common/atomic_file.hpp"
 #include "context.hpp"
 #include "evaluation.hpp"
 #include "json_report.hpp"
@@ -122,13 +123,18 @@ Json save_png(const Frame& frame, const std::string& out_dir, int index) {
   char name[32];
   std::snprintf(name, sizeof name, "frame_%05d.png", index);
   const std::string path = (fs::path(out_dir) / name).string();
+  std::vector<uchar> png;
   bool ok = false;
   try {
-    ok = cv::imwrite(path, frame.image);
+    ok = cv::imencode(".png", frame.image, png);
   } catch (const cv::Exception& e) {
-    throw Error(ErrorCode::kIo, "cannot write '" + path + "': " + e.what());
+    throw Error(ErrorCode::kIo, "cannot encode '" + path + "': " + e.what());
   }
-  if (!ok) throw Error(ErrorCode::kIo, "cannot write '" + path + "'");
+  if (!ok) throw Error(ErrorCode::kIo, "cannot encode '" + path + "' as PNG");
+  std::string error;
+  if (!write_file_atomic(path, {reinterpret_cast<const char*>(png.data()), png.size()}, &error)) {
+    throw Error(ErrorCode::kIo, error);
+  }
   return {{"file", path},
                    {"frame_id", frame.frame_id},
                    {"timestamp_ns", frame.timestamp_ns},

@@ -5,6 +5,7 @@
 //        --converged/failed--> finished (step/feed/pose_reached/skip: POSECAL_E_STATE)
 // and, orthogonally, "inside the event callback", where only status, target_pose and result
 // may be called on the session.
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <ctime>
@@ -33,6 +34,8 @@ struct posecal_session {
   DeviceInfo camera;
   bool external = false;
   bool in_callback = false;
+  // Set by posecal_session_interrupt (any thread): no further frame is processed.
+  std::atomic<bool> interrupted{false};
   posecal_event_fn fn = nullptr;
   void* user_data = nullptr;
   std::string started, finished;
@@ -54,6 +57,28 @@ void check_not_in_callback(const posecal_session* s, const char* call) {
                                        " may not be called from the session's event callback "
                                        "(only status, target_pose and result may)");
   }
+}
+
+// Frames are processed only until the calibration finishes or the host interrupts it.
+void check_running(const posecal_session* s) {
+  if (s->session->finished()) throw Error(ErrorCode::kState, "the calibration has finished");
+  if (s->interrupted) throw Error(ErrorCode::kState, "the calibration was interrupted");
+}
+
+// Interrupted before it finished by itself; the finish time is the first look after that.
+bool was_interrupted(posecal_session* s) {
+  if (!s->interrupted || s->session->finished()) return false;
+  if (s->finished.empty()) s->finished = utc_now_iso8601();
+  return true;
+}
+
+// The journal's part of status and result: where it is, what a resume restored.
+void journal_json(const CalibrationSession& cs, Json* j) {
+  const CalibrationSession::JournalStatus& js = cs.journal_status();
+  (*j)["journal"] = js.path.empty() ? Json(nullptr) : Json(js.path);
+  (*j)["resumed_keyframes"] = js.resumed_keyframes;
+  (*j)["journal_note"] = js.note.empty() ? Json(nullptr) : Json(js.note);
+  (*j)["resume_identical"] = js.identical ? Json(*js.identical) : Json(nullptr);
 }
 
 Json event_json(const SessionEvent& e, std::string* kind) {
@@ -175,7 +200,9 @@ Json status_json(posecal_session* s) {
   j["camera"] = abi::device_json(s->camera);
   j["frames"] = cs.frames_processed();
   j["camera_connected"] = !cs.disconnected();
-  j["finished"] = cs.finished();
+  j["interrupted"] = was_interrupted(s);
+  j["finished"] = cs.finished() || j["interrupted"].get<bool>();
+  journal_json(cs, &j);
   if (!eng) {
     j["state"] = "waiting_for_board";
     j["converged"] = false;
@@ -282,6 +309,14 @@ POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char
     s->external = uri.scheme == "external";
     s->camera = camera->info();
     s->session = std::make_unique<CalibrationSession>(std::move(camera), eo, lock);
+    if (!so_config.journal.empty()) {
+      // The config a journal is resumed with must be the one it was recorded with, but for
+      // the journal's own keys.
+      Json recorded = c;
+      for (const char* k : {"journal", "journal_images", "resume"}) recorded.erase(k);
+      s->session->open_journal(so_config.journal, abi::to_text(recorded), so_config.journal_images,
+                               so_config.resume);
+    }
     posecal_session* raw = s.get();
     s->session->set_event_callback([raw](const SessionEvent& e) { deliver(raw, e); });
     s->started = utc_now_iso8601();
@@ -312,8 +347,7 @@ POSECAL_API posecal_status posecal_session_step(posecal_session* session, int ti
       throw Error(ErrorCode::kInvalidArgument,
                   "timeout_ms must be in [0, 600000], got " + std::to_string(timeout_ms));
     }
-    if (session->session->finished())
-      throw Error(ErrorCode::kState, "the calibration has finished");
+    check_running(session);
     const StepStatus st = session->session->step(timeout_ms);
     note_finished(session);
     switch (st) {
@@ -341,8 +375,7 @@ POSECAL_API posecal_status posecal_session_feed(posecal_session* session,
     require(session, "session");
     check_not_in_callback(session, "posecal_session_feed");
     const cv::Mat m = wrap_image(image);
-    if (session->session->finished())
-      throw Error(ErrorCode::kState, "the calibration has finished");
+    check_running(session);
     // CalibrationSession::feed keeps its own copy (for last_frame): the host's pixels are not
     // referenced beyond this call.
     if (image->format == POSECAL_PIXEL_RGB8) {
@@ -480,6 +513,8 @@ POSECAL_API posecal_status posecal_session_result(posecal_session* session, char
     Json j = abi::calibration_json(r);
     j["state"] = engine_state_name(eng.state());
     j["converged"] = eng.converged();
+    j["interrupted"] = was_interrupted(session);
+    journal_json(*session->session, &j);
     if (eng.state() == EngineState::kFailed) j["failure"] = eng.failure_reason();
     j["keyframes"] = eng.keyframes();
     j["frames_processed"] = session->session->frames_processed();
@@ -524,7 +559,18 @@ POSECAL_API posecal_status posecal_session_save(posecal_session* session,
                           {{"camera_uri", session->camera.uri},
                            {"camera_id", session->camera.id},
                            {"target", eng.options().board.to_string()},
-                           {"converged", eng.converged() ? "true" : "false"}});
+                           {"converged", eng.converged() ? "true" : "false"},
+                           {"interrupted", was_interrupted(session) ? "true" : "false"}});
+    return POSECAL_OK;
+  });
+}
+
+POSECAL_API posecal_status posecal_session_interrupt(posecal_session* session) noexcept {
+  return guarded(__func__, [&] {
+    require(session, "session");
+    // Only the flag: another thread may be inside posecal_session_step. A calibration that
+    // finished before keeps its outcome (was_interrupted).
+    session->interrupted = true;
     return POSECAL_OK;
   });
 }

@@ -434,6 +434,7 @@ static void test_session_arguments(posecal_context* ctx) {
   EXPECT_INVALID(posecal_session_target_pose(NULL, rv, tv));
   EXPECT_INVALID(posecal_session_pose_reached(NULL));
   EXPECT_INVALID(posecal_session_skip_target(NULL));
+  EXPECT_INVALID(posecal_session_interrupt(NULL));
   EXPECT_INVALID(posecal_session_last_frame(NULL, &img));
   EXPECT_INVALID(posecal_session_render_overlay(NULL, &img));
   float map[4 * 4];
@@ -532,6 +533,25 @@ static void test_images(posecal_context* ctx) {
   EXPECT_STATE(posecal_session_save(s, path_in("none.yml")));
   EXPECT_STATE(posecal_session_skip_target(s));
   EXPECT_STATE(posecal_session_pose_reached(s));
+  posecal_session_close(s);
+}
+
+/* posecal_session_interrupt: no frame after it, status says so, idempotent. */
+static void test_interrupt(posecal_context* ctx) {
+  posecal_session* s = NULL;
+  char buf[8192];
+  size_t size = sizeof buf;
+  EXPECT_OK(posecal_session_open(ctx, "sim://?seed=2", NULL, &s));
+  if (!s) return;
+  for (int i = 0; i < 3; ++i) EXPECT_OK(posecal_session_step(s, 5000));
+  EXPECT_OK(posecal_session_interrupt(s));
+  EXPECT_OK(posecal_session_interrupt(s));
+  EXPECT_STATE(posecal_session_step(s, 100));
+  EXPECT_MESSAGE("interrupted");
+  EXPECT_OK(posecal_session_status(s, buf, &size));
+  CHECK(strstr(buf, "\"interrupted\":true") != NULL);
+  CHECK(strstr(buf, "\"finished\":true") != NULL);
+  EXPECT_STATE(posecal_session_result(s, buf, &size)); /* no keyframes yet */
   posecal_session_close(s);
 }
 
@@ -707,6 +727,7 @@ int main(int argc, char** argv) {
   test_images(ctx);
   lap("images");
   test_session_states(ctx);
+  test_interrupt(ctx);
   lap("session states");
   test_evaluate(ctx, path_in("result.yml"));
   lap("evaluate");

@@ -319,7 +319,7 @@ class Context(_Handle):
         jaccard_threshold, still_motion_px, constraint_factor, target_timeout_frames,
         pose_candidates, lock_settings, max_tilt_deg, fixed, convergence_measure,
         measured_convergence, candidate_score, view_candidates, view_must_serve_target,
-        accuracy_px."""
+        accuracy_px, journal, journal_images, resume."""
         return Session(self, uri, **config)
 
 
@@ -428,6 +428,11 @@ class Session(_Handle):
     def skip_target(self):
         """Gives up on the current refinement target."""
         _check(_lib.posecal_session_skip_target(self._handle()))
+
+    def interrupt(self):
+        """Stops the calibration gracefully (any thread): no further frame is processed,
+        status and result say "interrupted", and the calibration so far can be saved."""
+        _check(_lib.posecal_session_interrupt(self._handle()))
 
     # ---- state ----------------------------------------------------------------------------
     @property

@@ -105,6 +105,7 @@ _PROTOTYPES = {
     ),
     "posecal_session_pose_reached": (_status, [_p]),
     "posecal_session_skip_target": (_status, [_p]),
+    "posecal_session_interrupt": (_status, [_p]),
     "posecal_session_last_frame": (_status, [_p, _c.POINTER(Image)]),
     "posecal_session_render_overlay": (_status, [_p, _c.POINTER(Image)]),
     "posecal_session_expected_error_map": (
