@@ -1,7 +1,8 @@
 // A calibration session: one camera feeding one engine. The loop every host runs:
 //   step(timeout) = next frame from the camera -> engine -> guidance back to the camera.
 // Survives camera disconnects: the engine and its keyframes are kept, and the session goes on
-// when the camera delivers frames again.
+// when the camera delivers frames again. Ends as failed when no board has been seen for
+// EngineOptions::board_timeout_s of wall time (the failure reason says so).
 #pragma once
 
 #include <chrono>
@@ -55,6 +56,9 @@ class CalibrationSession {
   void ensure_engine(cv::Size size);
   FrameReport process(const cv::Mat& image, std::shared_ptr<void> hold);
   void emit(const SessionEvent& e);
+  // Fails the engine when no board has been seen for board_timeout_s (after a frame or a step
+  // without one).
+  void check_board_timeout();
 
   std::unique_ptr<Camera> camera_;
   EngineOptions options_;
@@ -68,6 +72,9 @@ class CalibrationSession {
   cv::Mat last_frame_;
   std::shared_ptr<void> last_hold_;  // keeps a zero-copy backend buffer alive with last_frame_
   std::chrono::steady_clock::time_point t0_;
+  // Since when no board has been seen: the first frame, the last frame showing the board, the
+  // camera's return after a disconnect.
+  std::chrono::steady_clock::time_point board_clock_;
 };
 
 }  // namespace posecal
