@@ -4,6 +4,7 @@
 #include <sys/stat.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cctype>
 #include <cerrno>
 #include <cstdio>
@@ -152,7 +153,8 @@ ImageFileInfo tiff(const ByteReader& read, const uint8_t* h) {
     int64_t v = -1;
     if (type == 3) v = u16(value);                                     // SHORT
     if (type == 4) v = u32(value);                                     // LONG
-    if (type == 16 && big) v = static_cast<int64_t>(u64(value) >> 1);  // LONG8 (halved: no sign)
+    if (type == 16 && big)
+      v = static_cast<int64_t>(std::min<uint64_t>(u64(value), 1ull << 62));  // LONG8
     if (tag == 256) w = v;
     if (tag == 257) height = v;
   }
