@@ -197,7 +197,7 @@ cv::Mat to_gray(const cv::Mat& image) {
 
 // Subpixel window half-size from the smallest distance between neighbouring corners: large
 // enough to see the saddle, small enough not to reach the next corner.
-int subpix_half_window(const std::vector<cv::Point2f>& pts, int cols, int rows) {
+int subpix_half_window(const std::vector<cv::Point2f>& pts, int cols, int rows, int max_hw = 11) {
   double min_d = 1e9;
   for (int i = 0; i < rows; ++i) {
     for (int j = 0; j < cols; ++j) {
@@ -206,7 +206,7 @@ int subpix_half_window(const std::vector<cv::Point2f>& pts, int cols, int rows) 
       if (i + 1 < rows) min_d = std::min(min_d, cv::norm(p - pts[(i + 1) * cols + j]));
     }
   }
-  return std::clamp(static_cast<int>(min_d * 0.4), 2, 11);
+  return std::clamp(static_cast<int>(min_d * 0.4), 2, max_hw);
 }
 
 // Chebyshev (L-infinity) distance from the origin to the segment a-b: cornerSubPix's window is a
@@ -313,71 +313,120 @@ void refine_charuco_corners(const cv::Mat& gray, int corners_per_row, double mar
 
 }  // namespace
 
+namespace {
+
+// A copy for the search, shrunk by the integer factor `k` (pixel averaging: cv::resize's INTER_AREA
+// takes its fast path for an integer factor; the last < k columns and rows are left out).
+cv::Mat shrink_for_search(const cv::Mat& gray, int k) {
+  const cv::Mat whole = gray(cv::Rect(0, 0, gray.cols / k * k, gray.rows / k * k));
+  cv::Mat small;
+  cv::resize(whole, small, cv::Size(gray.cols / k, gray.rows / k), 0, 0, cv::INTER_AREA);
+  return small;
+}
+
+// The factor by which a frame is shrunk for the search (1: searched at full resolution).
+int search_factor(const cv::Mat& gray, const DetectorOptions& options) {
+  const int max_side = std::max(gray.cols, gray.rows);
+  if (options.search_max_side <= 0 || max_side <= options.search_max_side) return 1;
+  return (max_side + options.search_max_side - 1) / options.search_max_side;
+}
+
+// A point of the shrunk copy in full-resolution pixels (pixel centres at integer coordinates).
+cv::Point2f to_full_resolution(const cv::Point2f& p, int k) {
+  return {static_cast<float>((p.x + 0.5) * k - 0.5), static_cast<float>((p.y + 0.5) * k - 0.5)};
+}
+
+void check_detect_size(const cv::Mat& image) {
+  const long long pixels = static_cast<long long>(image.cols) * image.rows;
+  if (pixels > kMaxDetectPixels) {
+    throw Error(ErrorCode::kInvalidArgument,
+                "detect: a " + std::to_string(image.cols) + "x" + std::to_string(image.rows) +
+                    " image is above the limit of " + std::to_string(kMaxDetectPixels / 1'000'000) +
+                    " megapixels (kMaxDetectPixels)");
+  }
+}
+
+}  // namespace
+
+// Chessboard: OpenCV's detector, on a shrunk copy for large frames; the corners are refined at
+// full resolution with a window from the corner spacing (wide enough to reach the saddle from
+// the shrunk copy's estimate, which is off by up to about half the factor).
+std::vector<cv::Point2f> Board::detect_chessboard(const cv::Mat& gray,
+                                                  const DetectorOptions& options) const {
+  std::vector<cv::Point2f> pts;
+  const cv::Size pattern(spec_.cols, spec_.rows);
+  const int flags =
+      cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE | cv::CALIB_CB_FAST_CHECK;
+  const int k = search_factor(gray, options);
+  if (k == 1) {
+    if (!cv::findChessboardCorners(gray, pattern, pts, flags)) return {};
+  } else {
+    if (!cv::findChessboardCorners(shrink_for_search(gray, k), pattern, pts, flags)) return {};
+    for (auto& p : pts) p = to_full_resolution(p, k);
+  }
+  int hw = options.subpix_half_window;
+  if (hw <= 0 && k == 1) hw = subpix_half_window(pts, spec_.cols, spec_.rows);
+  if (hw <= 0) hw = subpix_half_window(pts, spec_.cols, spec_.rows, std::max(11, 3 * k));
+  cv::cornerSubPix(gray, pts, cv::Size(hw, hw), cv::Size(-1, -1),
+                   cv::TermCriteria(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 50, 1e-3));
+  return pts;
+}
+
+// ChArUco: markers (on a shrunk copy for large frames), OpenCV's corner interpolation and
+// refinement at full resolution, then ours (refine_charuco_corners).
+void Board::detect_charuco(const cv::Mat& gray, const DetectorOptions& options,
+                           Detection* det) const {
+  std::vector<std::vector<cv::Point2f>> marker_corners;
+  std::vector<int> marker_ids;
+  const int k = search_factor(gray, options);
+  if (k > 1) {
+    cv::aruco::detectMarkers(shrink_for_search(gray, k), impl_->dictionary, marker_corners,
+                             marker_ids, impl_->params);
+    for (auto& quad : marker_corners)
+      for (auto& p : quad) p = to_full_resolution(p, k);
+  } else {
+    cv::aruco::detectMarkers(gray, impl_->dictionary, marker_corners, marker_ids, impl_->params);
+  }
+  det->markers = static_cast<int>(marker_ids.size());
+  if (marker_ids.empty()) return;
+  std::vector<cv::Point2f> ch_corners;
+  std::vector<int> ch_ids;
+  cv::aruco::interpolateCornersCharuco(marker_corners, marker_ids, gray, impl_->board, ch_corners,
+                                       ch_ids, cv::noArray(), cv::noArray(), options.min_markers);
+  // OpenCV 4.6's interpolateCornersCharuco adds (0.5, 0.5) to every refined corner, off the
+  // pixel-centre convention (measured: tests/unit/test_target.cpp renders one scene and
+  // compares both detectors with the true projections). Remove it before refining again.
+  for (auto& c : ch_corners) c -= cv::Point2f(0.5f, 0.5f);
+  const double inset = 0.5 * (1.0 - spec_.marker_length_m / spec_.square_length_m);
+  refine_charuco_corners(gray, spec_.cols - 1, inset, &ch_ids, &ch_corners);
+  std::vector<size_t> order(ch_ids.size());
+  for (size_t i = 0; i < order.size(); ++i) order[i] = i;
+  std::sort(order.begin(), order.end(), [&](size_t a, size_t b) { return ch_ids[a] < ch_ids[b]; });
+  for (size_t i : order) {
+    const int id = ch_ids[i];
+    if (id < 0 || id >= num_corners()) continue;
+    det->ids.push_back(id);
+    det->image_points.emplace_back(ch_corners[i].x, ch_corners[i].y);
+    det->board_points.push_back(corners_[id]);
+  }
+}
+
 Detection Board::detect(const cv::Mat& image, const DetectorOptions& options) const {
+  check_detect_size(image);  // before any work on the pixels
   const cv::Mat gray = to_gray(image);
   Detection det;
   try {
-    if (spec_.type == BoardType::kChessboard) {
-      std::vector<cv::Point2f> pts;
-      const cv::Size pattern(spec_.cols, spec_.rows);
-      const int flags =
-          cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE | cv::CALIB_CB_FAST_CHECK;
-      if (!cv::findChessboardCorners(gray, pattern, pts, flags)) return det;
-      const int hw = options.subpix_half_window > 0
-                         ? options.subpix_half_window
-                         : subpix_half_window(pts, spec_.cols, spec_.rows);
-      cv::cornerSubPix(gray, pts, cv::Size(hw, hw), cv::Size(-1, -1),
-                       cv::TermCriteria(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 50, 1e-3));
-      for (size_t i = 0; i < pts.size(); ++i) {
-        det.ids.push_back(static_cast<int>(i));
-        det.image_points.emplace_back(pts[i].x, pts[i].y);
-        det.board_points.push_back(corners_[i]);
-      }
+    if (spec_.type == BoardType::kCharuco) {
+      detect_charuco(gray, options, &det);
       return det;
     }
-
-    std::vector<std::vector<cv::Point2f>> marker_corners;
-    std::vector<int> marker_ids;
-    const int max_side = std::max(gray.cols, gray.rows);
-    if (options.marker_search_max_side > 0 && max_side > options.marker_search_max_side) {
-      const double scale = static_cast<double>(options.marker_search_max_side) / max_side;
-      cv::Mat small;
-      cv::resize(gray, small, cv::Size(), scale, scale, cv::INTER_AREA);
-      cv::aruco::detectMarkers(small, impl_->dictionary, marker_corners, marker_ids, impl_->params);
-      for (auto& quad : marker_corners) {
-        for (auto& p : quad) {
-          // Pixel-centre convention: x_full = (x_small + 0.5) / scale - 0.5.
-          p.x = static_cast<float>((p.x + 0.5) / scale - 0.5);
-          p.y = static_cast<float>((p.y + 0.5) / scale - 0.5);
-        }
-      }
-    } else {
-      cv::aruco::detectMarkers(gray, impl_->dictionary, marker_corners, marker_ids, impl_->params);
+    const std::vector<cv::Point2f> pts = detect_chessboard(gray, options);
+    for (size_t i = 0; i < pts.size(); ++i) {
+      det.ids.push_back(static_cast<int>(i));
+      det.image_points.emplace_back(pts[i].x, pts[i].y);
+      det.board_points.push_back(corners_[i]);
     }
-    det.markers = static_cast<int>(marker_ids.size());
-    if (marker_ids.empty()) return det;
-    std::vector<cv::Point2f> ch_corners;
-    std::vector<int> ch_ids;
-    cv::aruco::interpolateCornersCharuco(marker_corners, marker_ids, gray, impl_->board, ch_corners,
-                                         ch_ids, cv::noArray(), cv::noArray(), options.min_markers);
-    // OpenCV 4.6's interpolateCornersCharuco adds (0.5, 0.5) to every refined corner, off the
-    // pixel-centre convention (measured: tests/unit/test_target.cpp renders one scene and
-    // compares both detectors with the true projections). Remove it before refining again.
-    for (auto& c : ch_corners) c -= cv::Point2f(0.5f, 0.5f);
-    const double inset = 0.5 * (1.0 - spec_.marker_length_m / spec_.square_length_m);
-    refine_charuco_corners(gray, spec_.cols - 1, inset, &ch_ids, &ch_corners);
-    std::vector<size_t> order(ch_ids.size());
-    for (size_t i = 0; i < order.size(); ++i) order[i] = i;
-    std::sort(order.begin(), order.end(),
-              [&](size_t a, size_t b) { return ch_ids[a] < ch_ids[b]; });
-    for (size_t k : order) {
-      const int id = ch_ids[k];
-      if (id < 0 || id >= num_corners()) continue;
-      det.ids.push_back(id);
-      det.image_points.emplace_back(ch_corners[k].x, ch_corners[k].y);
-      det.board_points.push_back(corners_[id]);
-    }
-  } catch (const cv::Exception& e) {
+  } catch (const cv::Exception&) {
     // OpenCV rejects some degenerate inputs by exception; for detection that means "not found".
     return Detection{};
   }

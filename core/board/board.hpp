@@ -49,9 +49,14 @@ struct DetectorOptions {
   int min_markers = 2;
   // Half-size of cornerSubPix's window for the chessboard; 0 picks it from the corner spacing.
   int subpix_half_window = 0;
-  // If > 0, ArUco markers are searched in an image downscaled so its longer side is at most this
-  // many pixels; corners are always refined at full resolution. 0 disables downscaling.
-  int marker_search_max_side = 0;
+  // Frames whose longer side exceeds this many pixels are searched (chessboard corners, ArUco
+  // markers) in a copy shrunk by the smallest integer factor that brings the longer side within
+  // it (pixel averaging, INTER_AREA); the corners are then refined at full resolution. Bounds the
+  // cost of a frame (docs/performance.md, "Detection against the frame size": a chessboard search
+  // in 12 MP of noise took > 150 s); frames up to this size take the full-resolution path
+  // unchanged. 0: always search at full resolution.
+  int search_max_side = kSearchMaxSide;
+  static constexpr int kSearchMaxSide = 1280;
 };
 
 // A rendered board: texel (u, v) (OpenCV pixel convention) shows board point
@@ -61,6 +66,10 @@ struct BoardTexture {
   double metres_per_texel = 0;
   double margin_m = 0;
 };
+
+// The largest frame Board::detect accepts: 100 megapixels (2x a 48 MP sensor). Shrinking a
+// frame for the search costs time in proportion to its pixels (docs/performance.md).
+inline constexpr long long kMaxDetectPixels = 100'000'000;
 
 class Board {
  public:
@@ -80,7 +89,8 @@ class Board {
   std::vector<cv::Point3d> outline() const;
 
   // Detects the target in an 8-bit grey (or BGR) image. Never throws for image content;
-  // throws Error(kInvalidArgument) for an empty or non-8-bit image.
+  // throws Error(kInvalidArgument) for an empty or non-8-bit image, or one of more than
+  // kMaxDetectPixels pixels (naming the limit).
   Detection detect(const cv::Mat& image, const DetectorOptions& options = {}) const;
 
   // Renders the board pattern (no margin) at an integer number of texels per square, plus
@@ -93,6 +103,10 @@ class Board {
 
  private:
   struct Impl;
+  // detect() for each kind of board (grey image, cv::Exception for "not found").
+  std::vector<cv::Point2f> detect_chessboard(const cv::Mat& gray,
+                                             const DetectorOptions& options) const;
+  void detect_charuco(const cv::Mat& gray, const DetectorOptions& options, Detection* det) const;
   // printable.cpp: the PDF page's content stream.
   std::string pdf_content(double margin_m, double page_h) const;
   BoardSpec spec_;

@@ -2,9 +2,9 @@
 
 #include <algorithm>
 #include <filesystem>
-#include <opencv2/imgcodecs.hpp>
 
 #include "common/error.hpp"
+#include "common/image_file.hpp"
 
 namespace posecal {
 
@@ -35,12 +35,11 @@ OfflineCalibration calibrate_images(const std::string& dir, const BoardSpec& spe
     const std::string name = fs::path(file).filename().string();
     cv::Mat img;
     try {
-      img = cv::imread(file, cv::IMREAD_GRAYSCALE);
-    } catch (const cv::Exception&) {
-      img.release();
-    }
-    if (img.empty()) {
-      out.rejected.push_back({name, "not a readable image"});
+      // The header first: an image above kMaxImagePixels, a FIFO or a non-image is refused
+      // before anything is decoded (common/image_file.hpp).
+      img = read_grey_image(file);
+    } catch (const Error& e) {
+      out.rejected.push_back({name, e.what()});
       continue;
     }
     if (size.empty()) {

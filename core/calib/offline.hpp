@@ -32,8 +32,10 @@ struct OfflineOptions {
 std::vector<std::string> list_files_sorted(const std::string& dir);
 
 // Reads every file of `dir` in name order, detects the target and calibrates. Images that cannot
-// be read or show no target are listed in `rejected`, never fatal. Throws Error(kNotFound) for a
-// missing directory, Error(kDegenerate) if the usable images cannot determine the calibration.
+// be read, are above kMaxImagePixels (refused from the header, before decoding:
+// common/image_file.hpp) or show no target are listed in `rejected` with the reason, never fatal.
+// Throws Error(kNotFound) for a missing directory, Error(kDegenerate) if the usable images cannot
+// determine the calibration.
 OfflineCalibration calibrate_images(const std::string& dir, const BoardSpec& board,
                                     const OfflineOptions& options = {});
 

@@ -5,12 +5,12 @@
 #include <deque>
 #include <filesystem>
 #include <mutex>
-#include <opencv2/imgcodecs.hpp>
 #include <opencv2/imgproc.hpp>
 
 #include "calib/offline.hpp"
 #include "common/clock.hpp"
 #include "common/error.hpp"
+#include "common/image_file.hpp"
 
 namespace posecal {
 
@@ -43,8 +43,9 @@ class ImagesCamera final : public SimpleCamera {
       const std::string& file = files_[next_++];
       cv::Mat img;
       try {
-        img = cv::imread(file, cv::IMREAD_GRAYSCALE);
-      } catch (const cv::Exception&) {
+        // Header first: images above kMaxImagePixels and non-regular files are skipped undecoded.
+        img = read_grey_image(file);
+      } catch (const Error&) {
         img.release();
       }
       if (img.empty() || (!size_.empty() && img.size() != size_)) {

@@ -25,7 +25,9 @@ class SimpleCamera : public Camera {
 };
 
 // images://DIR: every regular file of DIR in name order, converted to 8-bit grey; unreadable
-// files and files whose size differs from the first image are counted as incomplete and skipped.
+// files, images above kMaxImagePixels (checked from the header before decoding,
+// common/image_file.hpp), files that are no longer regular files and images whose size differs
+// from the first image are counted as incomplete and skipped.
 // After the last file next_frame() returns kEndOfStream.
 std::shared_ptr<CameraBackend> make_images_backend();
 

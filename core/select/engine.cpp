@@ -434,6 +434,14 @@ void CalibrationEngine::skip_target() {
   s.set_target(s.next_pose(s.target_param), s.target_param);
 }
 
+void CalibrationEngine::give_up(const std::string& why) {
+  const EngineState s = impl_->state;
+  if (s == EngineState::kConverged || s == EngineState::kFailed) {
+    throw Error(ErrorCode::kState, std::string("give_up while ") + engine_state_name(s));
+  }
+  impl_->fail(why);
+}
+
 EngineState CalibrationEngine::state() const { return impl_->state; }
 const std::string& CalibrationEngine::failure_reason() const { return impl_->failure; }
 int CalibrationEngine::keyframes() const { return static_cast<int>(impl_->keyframes.size()); }

@@ -5,7 +5,7 @@
 //   InitialPose1 --keyframe 1--> InitialPose2 --keyframe 2 + calibration--> Refining(param)
 //   Refining --keyframe, all converged--> Converged
 //   Refining --keyframe cap reached--> Failed (result kept, reported as not converged)
-//   any state --fatal error--> Failed
+//   any state --fatal error, or give_up() (no board within board_timeout_s)--> Failed
 // A keyframe the calibration rejects (degenerate) is dropped and the same target stays.
 // docs/pose-selection.md draws this with every transition and its event.
 #pragma once
@@ -120,6 +120,12 @@ struct EngineOptions {
   // at the measured noise) is at most this; the targets then go to the intrinsic that holds it
   // back and the ratio test stops nothing. Unset: the ratio test (paper §4.1).
   std::optional<double> accuracy_px;
+  // A session (session/session.hpp, not the engine itself, which has no clock) ends as failed
+  // when no board has been seen for this many seconds of wall time: since the first frame, the
+  // last frame showing the board (>= 4 corners) or the camera's return after a disconnect. 0:
+  // never. Wall time, not frames: what it bounds is how long a station waits for a camera, and
+  // frame rates differ between cameras (and are unknown for fed frames and image folders).
+  double board_timeout_s = 120;
   PoseGenOptions posegen;
   CalibrationOptions calibration;
   DetectorOptions detector;
@@ -208,6 +214,9 @@ class CalibrationEngine {
   void report_pose_reached();
   // Gives up on the current refinement target and generates the next one.
   void skip_target();
+  // Ends the run as failed with `why` as the failure reason, in any state but the final ones
+  // (Error(kState) there); a calibration already made is kept (reported as not converged).
+  void give_up(const std::string& why);
 
   EngineState state() const;
   const std::string& failure_reason() const;

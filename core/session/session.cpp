@@ -2,6 +2,8 @@
 
 #include <sys/stat.h>
 
+#include <cstdio>
+
 #include "common/clock.hpp"
 #include "common/error.hpp"
 
@@ -58,6 +60,7 @@ void CalibrationSession::ensure_engine(cv::Size size) {
   }
   engine_ = std::make_unique<CalibrationEngine>(size, options_);
   restore_from_journal(size);
+  board_clock_ = std::chrono::steady_clock::now();
   engine_->set_event_callback([this](const EngineEvent& e) { emit({SessionEvent::Kind::kEngine, e, ""}); });
 }
 
@@ -72,6 +75,18 @@ bool CalibrationSession::finished() const {
 
 double CalibrationSession::wall_ms() const {
   return std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0_).count();
+}
+
+void CalibrationSession::check_board_timeout() {
+  const double limit_s = options_.board_timeout_s;
+  if (!engine_ || finished() || disconnected_ || limit_s <= 0) return;
+  const double waited_s =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - board_clock_).count();
+  if (waited_s < limit_s) return;
+  char figures[96];
+  std::snprintf(figures, sizeof figures, " seen for %.3g s (board_timeout_s = %g)", waited_s,
+                limit_s);
+  engine_->give_up("no board (" + options_.board.to_string() + ")" + figures);
 }
 
 FrameReport CalibrationSession::feed(const cv::Mat& image) {
@@ -90,6 +105,8 @@ FrameReport CalibrationSession::process(const cv::Mat& image, std::shared_ptr<vo
   const EngineState state_before = engine_->state();
   const int keyframes_before = engine_->keyframes();
   const FrameReport r = engine_->process(image);
+  if (r.board_visible) board_clock_ = std::chrono::steady_clock::now();
+  check_board_timeout();
   journal_frame(state_before, keyframes_before, image);
   camera_->guide(engine_->guidance_info());
   if (camera_->take_pose_reached() && !finished()) {
@@ -125,7 +142,9 @@ StepStatus CalibrationSession::step(int timeout_ms) {
     fs = FrameStatus::kDisconnected;
   }
   switch (fs) {
-    case FrameStatus::kTimeout: return StepStatus::kTimeout;
+    case FrameStatus::kTimeout:
+      check_board_timeout();  // a camera that delivers nothing shows no board either
+      return StepStatus::kTimeout;
     case FrameStatus::kEndOfStream: return StepStatus::kEndOfStream;
     case FrameStatus::kDisconnected:
       if (!disconnected_) {
@@ -138,6 +157,7 @@ StepStatus CalibrationSession::step(int timeout_ms) {
   }
   if (disconnected_) {
     disconnected_ = false;
+    board_clock_ = std::chrono::steady_clock::now();  // the time away does not count
     emit({SessionEvent::Kind::kCameraReconnected, std::nullopt, "camera '" + camera_->info().uri + "' is back"});
   }
   process(frame.image, frame.hold);

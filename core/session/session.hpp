@@ -1,7 +1,8 @@
 // A calibration session: one camera feeding one engine. The loop every host runs:
 //   step(timeout) = next frame from the camera -> engine -> guidance back to the camera.
 // Survives camera disconnects: the engine and its keyframes are kept, and the session goes on
-// when the camera delivers frames again.
+// when the camera delivers frames again. Ends as failed when no board has been seen for
+// EngineOptions::board_timeout_s of wall time (the failure reason says so).
 #pragma once
 
 #include <chrono>
@@ -78,6 +79,9 @@ class CalibrationSession {
   void journal_frame(EngineState state_before, int keyframes_before, const cv::Mat& image);
   // A journal write that failed: reported once, and the journal stops (the calibration goes on).
   void journal_failed(const Error& e);
+  // Fails the engine when no board has been seen for board_timeout_s (after a frame or a step
+  // without one).
+  void check_board_timeout();
 
   std::unique_ptr<Camera> camera_;
   EngineOptions options_;
@@ -95,6 +99,9 @@ class CalibrationSession {
   bool journal_images_ = false;
   JournalContents resumed_;  // the journal read at open_journal, until the first frame
   JournalStatus journal_status_;
+  // Since when no board has been seen: the first frame, the last frame showing the board, the
+  // camera's return after a disconnect.
+  std::chrono::steady_clock::time_point board_clock_;
 };
 
 }  // namespace posecal

@@ -100,16 +100,19 @@ void calibrate_one(StationShared* shared, StationJob* job, Clock::time_point t0)
   step_until_done(s.get(), o, job->uri, t0);
   out["interrupted"] = interrupt_requested();
   if (!has_result(s.get())) {
-    throw Failure{POSECAL_E_STATE, std::string("no calibration: fewer than two keyframes were "
-                                               "captured") +
-                                       (interrupt_requested() ? " before the interrupt" : "")};
+    // Why the session ended without a calibration (e.g. board_timeout_s), if it says.
+    const Json st = fetch_status(s.get());
+    const std::string why = st.contains("failure") ? " (" + st["failure"].get<std::string>() + ")" : "";
+    throw Failure{POSECAL_E_STATE, "no calibration: fewer than two keyframes were captured" +
+                                       std::string(interrupt_requested() ? " before the interrupt" : "") +
+                                       why};
   }
   const std::string file = claim_file(shared, camera.value("id", ""));
   check(posecal_session_save(s.get(), file.c_str()));
   const Json result = fetch_result(s.get());
   out["converged"] = result.value("converged", false);
   out["interrupted"] = result.value("interrupted", false);
-  for (const char* k : {"state", "keyframes", "frames_processed", "eps_res"}) {
+  for (const char* k : {"state", "keyframes", "frames_processed", "eps_res", "failure"}) {
     out[k] = result.value(k, Json());
   }
   out["eps_test"] = result.value("eps_test", Json());

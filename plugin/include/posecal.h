@@ -217,6 +217,9 @@ typedef struct posecal_image {
  *   view candidates"),
  *   "view_must_serve_target" (false; true: a view must also reduce the targeted parameter's
  *   variance at least as much as the rule's pose),
+ *   "board_timeout_s" (120; 0 = never: the session ends as failed, "failure" in the status
+ *   saying so, when no board has been seen for this many seconds of wall time since the first
+ *   frame, the last frame showing the board or the camera's return after a disconnect),
  *   "accuracy_px" (unset; a number in [0.001, 100]: the session converges when the 90th
  *   percentile of the projection error it predicts, "expected_error_p90_px" of the status and
  *   result, is at most this (9 of 10 such calibrations stay within it), and ends

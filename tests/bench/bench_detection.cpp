@@ -1,0 +1,139 @@
+// Detection cost per frame against the frame size (issue 16): a frame of uniform noise (the
+// worst case of the chessboard detector) and a frame showing the board, for the chessboard and
+// the ChArUco board, at 1280x720, 3, 5, 12 and 48 MP; and the corner error against the true
+// projections on the board frames (printed once per frame, before the timings).
+//   taskset -c 0 build/bin/bench_detection --benchmark_repetitions=3
+//       --benchmark_report_aggregates_only=true            (docs/performance.md)
+// The frames are rendered once, on first use: a 48 MP frame takes a few seconds and ~1.5 GB
+// while it is rendered (one sample per pixel, a distortion-free lens).
+#include <benchmark/benchmark.h>
+
+#include <chrono>
+#include <cmath>
+#include <cstdio>
+#include <map>
+#include <string>
+#include <vector>
+
+#include "board/board.hpp"
+#include "board/views.hpp"
+#include "sim/synthetic.hpp"
+
+using namespace posecal;
+
+namespace {
+
+struct FrameSize {
+  const char* name;
+  int width, height;
+};
+
+const std::vector<FrameSize>& sizes() {
+  static const std::vector<FrameSize> s = {{"1280x720", 1280, 720},
+                                           {"3MP", 2048, 1536},
+                                           {"5MP", 2592, 1944},
+                                           {"12MP", 4000, 3000},
+                                           {"48MP", 8000, 6000}};
+  return s;
+}
+
+const char* kChessboard = "chessboard:9x6:0.025";
+const char* kCharuco = "charuco:9x6:0.028:0.0182:DICT_4X4_50";
+
+struct Scene {
+  cv::Mat image;
+  std::vector<cv::Point2d> truth;  // true corner projections (board frames only)
+};
+
+// The same view at every size: focal length 0.8 x width, the board about half the image wide,
+// tilted 23 degrees, slightly rolled.
+Scene render_board(const std::string& spec, const FrameSize& fs) {
+  const Board board(BoardSpec::parse(spec));
+  const double f = 0.8 * fs.width;
+  const CameraModel cam = CameraModel::opencv5(fs.width, fs.height, f, f, 0.5 * (fs.width - 1),
+                                               0.5 * (fs.height - 1), {0, 0, 0, 0, 0});
+  RenderOptions ro;
+  ro.supersample = fs.width * fs.height > 20'000'000 ? 1 : 2;
+  ro.noise_sigma = 2;
+  ro.blur_sigma_px = 0.8;
+  ro.seed = 5;
+  SyntheticCamera sc(cam, board, ro);
+  const Pose p = board_pose_at(board, Eigen::Vector3d(0.01, -0.005, 0.40), 0.7, 0.4, 0.2);
+  Scene s;
+  s.image = sc.render(p);
+  s.truth = sc.true_corners(p);
+  return s;
+}
+
+const Scene& scene(const std::string& spec, int size_index, bool noise) {
+  static std::map<std::string, Scene> cache;
+  const FrameSize& fs = sizes()[size_index];
+  const std::string key = (noise ? std::string("noise") : spec) + "/" + fs.name;
+  auto it = cache.find(key);
+  if (it != cache.end()) return it->second;
+  Scene s;
+  if (noise) {
+    s.image = cv::Mat(fs.height, fs.width, CV_8U);
+    cv::RNG rng(16);
+    rng.fill(s.image, cv::RNG::UNIFORM, 0, 256);
+  } else {
+    s = render_board(spec, fs);
+  }
+  return cache.emplace(key, std::move(s)).first->second;
+}
+
+void print_accuracy(const std::string& spec, const FrameSize& fs, const Scene& s,
+                    const Detection& d) {
+  double ss = 0, worst = 0;
+  for (size_t i = 0; i < d.size(); ++i) {
+    const double e = cv::norm(d.image_points[i] - s.truth[d.ids[i]]);
+    ss += e * e;
+    worst = std::max(worst, e);
+  }
+  std::fprintf(stderr, "accuracy %s %s: %zu corners, rms %.4f px, worst %.4f px\n", spec.c_str(),
+               fs.name, d.size(), d.empty() ? 0.0 : std::sqrt(ss / d.size()), worst);
+}
+
+void BM_Detect(benchmark::State& state, std::string spec, int size_index, bool noise) {
+  const Scene& s = scene(spec, size_index, noise);
+  const Board board(BoardSpec::parse(spec));
+  Detection d;
+  for (auto _ : state) {
+    try {
+      d = board.detect(s.image);
+    } catch (const std::exception& e) {
+      state.SkipWithError(e.what());
+      break;
+    }
+    benchmark::DoNotOptimize(d.image_points.data());
+  }
+  state.counters["corners"] = static_cast<double>(d.size());
+  static std::map<std::string, bool> printed;
+  if (!noise && !printed[spec + sizes()[size_index].name]) {
+    printed[spec + sizes()[size_index].name] = true;
+    print_accuracy(spec, sizes()[size_index], s, d);
+  }
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  for (const char* spec : {kChessboard, kCharuco}) {
+    const std::string kind = std::string(spec).substr(0, std::string(spec).find(':'));
+    for (int i = 0; i < static_cast<int>(sizes().size()); ++i) {
+      for (const bool noise : {true, false}) {
+        const std::string name =
+            "BM_Detect/" + kind + "/" + sizes()[i].name + (noise ? "/noise" : "/board");
+        benchmark::RegisterBenchmark(name.c_str(), BM_Detect, std::string(spec), i, noise)
+            ->Unit(benchmark::kMillisecond)
+            ->MeasureProcessCPUTime()  // OpenCV's worker threads too
+            ->UseRealTime();
+      }
+    }
+  }
+  benchmark::Initialize(&argc, argv);
+  if (benchmark::ReportUnrecognizedArguments(argc, argv)) return 1;
+  benchmark::RunSpecifiedBenchmarks();
+  benchmark::Shutdown();
+  return 0;
+}
