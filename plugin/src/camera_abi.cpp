@@ -361,7 +361,20 @@ POSECAL_API posecal_status posecal_evaluate(posecal_context* ctx, const char* re
       j["frames_seen"] = cts.seen;
     }
     j["frames_collected"] = test_set.size();
+    if (test_set.empty()) {
+      throw Error(ErrorCode::kDegenerate,
+                  "evaluate: no test frame from '" + std::string(camera_uri) +
+                      "' showed the board: nothing to evaluate '" + result_path + "' on");
+    }
     j.update(abi::evaluation_json(estimate, test_set, truth.get()));
+    if (j["test_frames"].get<int>() == 0) {
+      // A model that fits no frame's pose (e.g. fx 1e-9) is not a calibration of this camera.
+      throw Error(ErrorCode::kInvalidArgument,
+                  "evaluate: the model in '" + std::string(result_path) + "' (fx " +
+                      std::to_string(estimate.fx()) + ", fy " + std::to_string(estimate.fy()) +
+                      ") cannot project the test set: no pose fits any of the " +
+                      std::to_string(test_set.size()) + " frames");
+    }
     Json model;
     for (int i = 0; i < estimate.num_params(); ++i)
       model[estimate.param_names()[i]] = estimate.params()[i];
