@@ -388,7 +388,7 @@ int read_size(const std::string& path, const cv::FileNode& root, const char* key
   const cv::FileNode n = need(path, root, key);
   const double v = n.isInt() || n.isReal() ? static_cast<double>(n) : 0.0;
   if (!(v >= 1 && v <= CameraModel::kMaxImageSide && v == std::floor(v))) {
-    bad_file(path, std::string("'") + key + "' must be an integer in [1, " +
+    bad_file(path, std::string("'") + key + "' must be an integer within the limit [1, " +
                        std::to_string(CameraModel::kMaxImageSide) + "]");
   }
   return static_cast<int>(v);
