@@ -74,13 +74,13 @@ void expect_refused(const CliRun& r, const std::vector<std::string>& needles) {
 
 }  // namespace
 
-// A FIFO given as --result blocked for ever before.
+// A FIFO given as --result blocked for ever before (in open(), even through SIGTERM).
 TEST(CliBadInput, FifoAsResultDoesNotBlock) {
   const std::string fifo = (fs::path(testing::TempDir()) / "posecal_cli_bad_fifo.yml").string();
   std::remove(fifo.c_str());
   ASSERT_EQ(mkfifo(fifo.c_str(), 0600), 0);
   const CliRun r = run("evaluate --result " + fifo + " --camera 'sim://?seed=1'", false,
-                       "-u DISPLAY timeout 30");
+                       "-u DISPLAY timeout -s KILL 30");
   expect_refused(r, {"not a regular file", "POSECAL_E_INVALID_ARGUMENT"});
   std::remove(fifo.c_str());
 }
