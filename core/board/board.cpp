@@ -3,6 +3,7 @@
 #include <zlib.h>
 
 #include <algorithm>
+#include <charconv>
 #include <cmath>
 #include <cstdio>
 #include <fstream>
@@ -53,18 +54,39 @@ const std::map<std::string, int>& dictionary_table() {
   throw Error(ErrorCode::kInvalidArgument, "target spec '" + spec + "': " + why);
 }
 
-double parse_length(const std::string& spec, const std::string& field, const std::string& text) {
+// A length in metres: a plain decimal number (no hex, inf or nan) in [min_m, kMaxLengthM].
+double parse_length(const std::string& spec, const std::string& field, const std::string& text,
+                    double min_m) {
+  const bool decimal =
+      !text.empty() && text.find_first_not_of("0123456789.eE+-") == std::string::npos;
   size_t used = 0;
   double v = 0;
   try {
-    v = std::stod(text, &used);
-  } catch (...) {
-    bad_spec(spec, field + " '" + text + "' is not a number");
+    if (decimal) v = std::stod(text, &used);
+  } catch (...) {  // out of range (underflow or overflow)
+    used = 0;
   }
-  if (used != text.size()) bad_spec(spec, field + " '" + text + "' is not a number");
+  if (!decimal || used != text.size()) bad_spec(spec, field + " '" + text + "' is not a number");
   if (!std::isfinite(v) || v <= 0) bad_spec(spec, field + " must be a positive length in metres");
-  if (v > 10) bad_spec(spec, field + " " + text + " m is implausible (lengths are in metres)");
+  if (v > BoardSpec::kMaxLengthM) {
+    bad_spec(spec, field + " " + text + " m is implausible (lengths are in metres, at most 10)");
+  }
+  if (v < min_m) {
+    bad_spec(spec,
+             field + " " + text + " m is below the smallest, " + std::to_string(min_m) + " m");
+  }
   return v;
+}
+
+// "COLSxROWS": two decimal integers.
+bool parse_grid(const std::string& text, int* cols, int* rows) {
+  const size_t x = text.find('x');
+  if (x == std::string::npos) return false;
+  const auto whole = [](const std::string& t, int* out) {
+    const auto r = std::from_chars(t.data(), t.data() + t.size(), *out);
+    return !t.empty() && r.ec == std::errc() && r.ptr == t.data() + t.size();
+  };
+  return whole(text.substr(0, x), cols) && whole(text.substr(x + 1), rows);
 }
 
 }  // namespace
@@ -86,15 +108,14 @@ BoardSpec BoardSpec::parse(const std::string& spec) {
     bad_spec(spec, "unknown target type '" + f[0] + "' (charuco or chessboard)");
   }
   int cols = 0, rows = 0;
-  char x = 0, extra = 0;
-  if (std::sscanf(f[1].c_str(), "%d%c%d%c", &cols, &x, &rows, &extra) != 3 || x != 'x') {
+  if (!parse_grid(f[1], &cols, &rows)) {
     bad_spec(spec, "grid '" + f[1] + "' is not COLSxROWS");
   }
   out.cols = cols;
   out.rows = rows;
-  out.square_length_m = parse_length(spec, "square length", f[2]);
+  out.square_length_m = parse_length(spec, "square length", f[2], BoardSpec::kMinSquareM);
   if (out.type == BoardType::kCharuco) {
-    out.marker_length_m = parse_length(spec, "marker length", f[3]);
+    out.marker_length_m = parse_length(spec, "marker length", f[3], 0.0);
     out.dictionary = f[4];
   } else {
     out.marker_length_m = 0;
@@ -110,13 +131,21 @@ BoardSpec BoardSpec::parse(const std::string& spec) {
 
 void BoardSpec::validate() const {
   auto fail = [](const std::string& why) { throw Error(ErrorCode::kInvalidArgument, why); };
-  if (cols < 2 || rows < 2 || cols > 100 || rows > 100)
-    fail("grid must be between 2x2 and 100x100");
-  if (!(square_length_m > 0) || !std::isfinite(square_length_m)) fail("square length must be > 0");
+  const int min_side =
+      3;  // OpenCV's chessboard detector needs 3; a 2-row ChArUco's corners are collinear
+  if (cols < min_side || rows < min_side || cols > kMaxSide || rows > kMaxSide) {
+    fail("grid " + std::to_string(cols) + "x" + std::to_string(rows) + " must be between 3x3 and " +
+         std::to_string(kMaxSide) + "x" + std::to_string(kMaxSide));
+  }
+  if (!(square_length_m >= kMinSquareM && square_length_m <= kMaxLengthM)) {
+    fail("square length must be in [" + std::to_string(kMinSquareM) + ", " +
+         std::to_string(kMaxLengthM) + "] m");
+  }
   if (type == BoardType::kCharuco) {
-    if (cols < 3 && rows < 3) fail("a ChArUco board needs at least 3 squares along one side");
-    if (!(marker_length_m > 0) || !(marker_length_m < square_length_m)) {
-      fail("marker length must be positive and smaller than the square length");
+    if (!(marker_length_m >= kMinMarkerRatio * square_length_m) ||
+        !(marker_length_m < square_length_m)) {
+      fail("marker length must be smaller than the square length and at least " +
+           std::to_string(kMinMarkerRatio) + " of it");
     }
     auto it = dictionary_table().find(dictionary);
     if (it == dictionary_table().end()) fail("unknown ArUco dictionary '" + dictionary + "'");

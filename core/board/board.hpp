@@ -26,8 +26,18 @@ struct BoardSpec {
   double marker_length_m = 0.0182;  // ChArUco only; paper setup: 0.65 of the square
   std::string dictionary = "DICT_4X4_50";
 
-  // "charuco:9x6:0.028:0.0182:DICT_4X4_50" or "chessboard:9x6:0.025" (inner corners).
-  // Throws Error(kInvalidArgument) naming the offending field.
+  // Limits of a spec: 3 to kMaxSide squares (ChArUco) or inner corners (chessboard) per side;
+  // square length in [kMinSquareM, kMaxLengthM] metres; ChArUco marker length below the square
+  // length and at least kMinMarkerRatio of it (the renderer's 128 texels per square then give
+  // every dictionary's marker enough texels).
+  static constexpr int kMaxSide = 100;
+  static constexpr double kMinSquareM = 1e-4;
+  static constexpr double kMaxLengthM = 10.0;
+  static constexpr double kMinMarkerRatio = 0.1;
+
+  // "charuco:9x6:0.028:0.0182:DICT_4X4_50" or "chessboard:9x6:0.025" (inner corners), lengths
+  // in metres as plain decimal numbers. Throws Error(kInvalidArgument) naming the spec and the
+  // offending field.
   static BoardSpec parse(const std::string& spec);
   std::string to_string() const;
   // Throws Error(kInvalidArgument) if inconsistent (marker too large, too few corners...).

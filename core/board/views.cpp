@@ -198,8 +198,12 @@ std::vector<Pose> random_board_views(uint64_t seed, int count, const CameraModel
   for (int i = 0; i < count; ++i) {
     auto p = random_board_view(rng, model, board, sampling);
     if (!p) {
-      throw Error(ErrorCode::kInternal,
-                  "no fully visible board view found: is the board larger than the view?");
+      // The camera (e.g. a model file's) and the board admit no view: an input, not a bug.
+      throw Error(ErrorCode::kInvalidArgument,
+                  "no fully visible view of the board in a " + std::to_string(model.width()) + "x" +
+                      std::to_string(model.height()) + " camera with fx " +
+                      std::to_string(model.fx()) +
+                      ": is the board larger than the view, or the field of view too wide?");
     }
     out.push_back(*p);
   }

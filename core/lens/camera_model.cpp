@@ -77,6 +77,12 @@ bool CameraModel::is_valid(std::string* why) const {
     return false;
   };
   if (width_ <= 0 || height_ <= 0) return fail("image size must be positive");
+  if (width_ > kMaxImageSide || height_ > kMaxImageSide ||
+      static_cast<long long>(width_) * height_ > kMaxImagePixels) {
+    return fail("image size " + std::to_string(width_) + "x" + std::to_string(height_) +
+                " is beyond the limit of " + std::to_string(kMaxImageSide) +
+                " pixels per side and " + std::to_string(kMaxImagePixels) + " pixels");
+  }
   if (static_cast<int>(params_.size()) != num_intrinsics(model_))
     return fail("wrong parameter count");
   for (size_t i = 0; i < params_.size(); ++i) {

@@ -53,7 +53,14 @@ class CameraModel {
   static CameraModel from_opencv(int width, int height, const cv::Matx33d& K,
                                  const std::vector<double>& dist);
 
-  // True if every parameter is finite, focal lengths are positive and the size is positive.
+  // The largest image a model may describe: kMaxImageSide pixels per side (below OpenCV's
+  // cv::remap limit of 32767, SHRT_MAX) and kMaxImagePixels pixels (2^28, 268 MP; the largest
+  // sensors sold have about 150 MP). Models from files, URIs and hosts are checked against it.
+  static constexpr int kMaxImageSide = 30000;
+  static constexpr long long kMaxImagePixels = 1LL << 28;
+
+  // True if every parameter is finite, focal lengths are positive and the size is positive and
+  // within kMaxImageSide / kMaxImagePixels.
   bool is_valid(std::string* why = nullptr) const;
 
   // Lens distortion of a normalised point.

@@ -95,12 +95,31 @@ struct SyntheticCamera::Impl {
   }
 };
 
+namespace {
+
+// The renderer's memory grows with the pixels and the ray samples: both are bounded.
+void check_render_size(const CameraModel& truth, const RenderOptions& options) {
+  const long long pixels = static_cast<long long>(truth.width()) * truth.height();
+  const long long ss = options.renderer == Renderer::kWarp ? 1 : options.supersample;
+  if (pixels > SyntheticCamera::kMaxPixels || pixels * ss * ss > SyntheticCamera::kMaxSamples) {
+    throw Error(ErrorCode::kInvalidArgument,
+                "synthetic camera: " + std::to_string(truth.width()) + "x" +
+                    std::to_string(truth.height()) + " (supersample " + std::to_string(ss) +
+                    ") is beyond the simulator's limit of " +
+                    std::to_string(SyntheticCamera::kMaxPixels) + " pixels and " +
+                    std::to_string(SyntheticCamera::kMaxSamples) + " ray samples");
+  }
+}
+
+}  // namespace
+
 SyntheticCamera::SyntheticCamera(const CameraModel& truth, const Board& board,
                                  const RenderOptions& options)
     : impl_(std::make_unique<Impl>()) {
   std::string why;
   if (!truth.is_valid(&why)) throw Error(ErrorCode::kInvalidArgument, "synthetic camera: " + why);
   options.validate();
+  check_render_size(truth, options);
   impl_->model = truth;
   impl_->board = board;
   impl_->options = options;
@@ -134,6 +153,7 @@ uint64_t SyntheticCamera::frames_rendered() const { return impl_->frame; }
 
 void SyntheticCamera::set_options(const RenderOptions& options) {
   options.validate();
+  check_render_size(impl_->model, options);
   const bool new_rays = options.supersample != impl_->options.supersample ||
                         options.renderer != impl_->options.renderer;
   const bool new_bg = options.seed != impl_->options.seed ||

@@ -54,6 +54,12 @@ struct RenderOptions {
 
 class SyntheticCamera {
  public:
+  // The largest camera the renderer simulates: 2^25 pixels (33.5 MP), and at most 2^27 ray
+  // samples (pixels x supersample^2). Rendering holds about 90 bytes per pixel at the default
+  // supersampling (rays, float images, noise): about 3 GB at the limit.
+  static constexpr long long kMaxPixels = 1LL << 25;
+  static constexpr long long kMaxSamples = 1LL << 27;
+  // Throws Error(kInvalidArgument) if `truth` is invalid or beyond kMaxPixels / kMaxSamples.
   SyntheticCamera(const CameraModel& truth, const Board& board,
                   const RenderOptions& options = {});
   ~SyntheticCamera();

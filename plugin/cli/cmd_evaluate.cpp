@@ -31,8 +31,11 @@ int run_evaluate(const EvaluateOptions& o) {
     std::printf("%s\n", j.dump().c_str());
     return kOk;
   }
+  if (!j["eps_test"].is_number()) {  // the library reports this as an error; never print a figure
+    throw Failure{POSECAL_E_DEGENERATE, "evaluate: no test-set error for " + o.result};
+  }
   std::printf("%s on %s: eps_test %.4f px over %d frames (%d failed PnP)", o.result.c_str(),
-              o.camera.c_str(), num_or(j, "eps_test", -1), j["test_frames"].get<int>(),
+              o.camera.c_str(), j["eps_test"].get<double>(), j["test_frames"].get<int>(),
               j["test_frames_failed"].get<int>());
   if (j["eps_gt"].is_number()) std::printf(", eps_gt %.4f px", j["eps_gt"].get<double>());
   std::printf("\n");

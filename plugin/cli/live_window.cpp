@@ -13,8 +13,14 @@
 #include <cstring>
 
 #ifdef POSECAL_CLI_HIGHGUI
+#include <xcb/xcb.h>
+
+#include <chrono>
+#include <future>
+#include <memory>
 #include <opencv2/core.hpp>
 #include <opencv2/highgui.hpp>
+#include <thread>
 #endif
 
 namespace posecal::cli {
@@ -73,6 +79,27 @@ bool tcp_display_reachable(const std::string& host, int n) {
   return ok;
 }
 
+#ifdef POSECAL_CLI_HIGHGUI
+// An X connection to `display` that xcb accepts: the server completed the X11 handshake. A
+// listener that accepts and then says nothing would block xcb_connect for ever, so it runs on
+// its own thread and is given up (left blocked, the process ends it) after 3 s.
+std::string x_connection_error(const std::string& display) {
+  auto result = std::make_shared<std::promise<std::string>>();
+  std::future<std::string> answer = result->get_future();
+  std::thread([display, result] {
+    xcb_connection_t* c = xcb_connect(display.c_str(), nullptr);
+    const int err = xcb_connection_has_error(c);
+    xcb_disconnect(c);
+    result->set_value(err == 0 ? ""
+                               : "the X connection failed (xcb error " + std::to_string(err) + ")");
+  }).detach();
+  if (answer.wait_for(std::chrono::seconds(3)) != std::future_status::ready) {
+    return "the X server did not complete the handshake within 3 s";
+  }
+  return answer.get();
+}
+#endif
+
 }  // namespace
 
 bool x_display_reachable(const std::string& display) {
@@ -94,6 +121,17 @@ LiveWindow::LiveWindow(bool wanted) {
     std::fprintf(stderr, "posecal calibrate: no X server answers at DISPLAY=%s; headless\n",
                  display);
     return;
+  }
+  // Qt aborts the process when its display is not a usable X server: open a real X
+  // connection before highgui is touched.
+  if (m != "force") {
+    const std::string why = x_connection_error(display);
+    if (!why.empty()) {
+      std::fprintf(stderr,
+                   "posecal calibrate: DISPLAY=%s is not a usable X server (%s); headless\n",
+                   display, why.c_str());
+      return;
+    }
   }
   enabled_ = true;
 #else

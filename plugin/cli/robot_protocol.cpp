@@ -8,6 +8,17 @@
 
 namespace posecal::cli {
 
+namespace {
+
+// Text from outside (the controller's line) as valid UTF-8: invalid bytes become U+FFFD, so the
+// JSON printed with it is valid and nlohmann's dump never throws.
+std::string valid_utf8(const std::string& text) {
+  return Json::parse(Json(text).dump(-1, ' ', false, Json::error_handler_t::replace))
+      .get<std::string>();
+}
+
+}  // namespace
+
 bool LineReader::take_line(std::string* line) {
   const size_t nl = buffer_.find('\n');
   if (nl != std::string::npos) {
@@ -100,11 +111,11 @@ void RobotLink::await_reply(posecal_session* s) {
     if (reply == Reply::kSkip) rs = posecal_session_skip_target(s);
     if (reply != Reply::kInvalid && rs == POSECAL_OK) return;
     write_line(stdout, Json{{"event", "protocol_error"},
-                            {"line", line},
+                            {"line", valid_utf8(line)},
                             {"message", reply == Reply::kInvalid
                                             ? "expected 'reached', 'skip', 'abort' or a JSON "
                                               "object {\"reached\": true}"
-                                            : std::string(posecal_last_error())}});
+                                            : valid_utf8(posecal_last_error())}});
   }
 }
 

@@ -1,6 +1,8 @@
 // Camera utilities behind the C ABI: feature listing, grabbing frames to PNG files, and the
 // test-set evaluation of an existing calibration file.
+#include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <filesystem>
 #include <memory>
@@ -10,10 +12,10 @@
 #include "common/atomic_file.hpp"
 #include "context.hpp"
 #include "evaluation.hpp"
+#include "io/model_file.hpp"
 #include "json_report.hpp"
 #include "posecal.h"
 #include "sim/sim_camera.hpp"
-#include "io/model_file.hpp"
 
 using namespace posecal;
 using posecal::abi::guarded;
@@ -302,6 +304,32 @@ POSECAL_API posecal_status posecal_camera_grab(posecal_context* ctx, const char*
   });
 }
 
+namespace {
+
+// A model whose image reaches (almost) 90 degrees off its axis (e.g. fx 1e-9) maps every board
+// to a dot: PnP then "fits" boards micrometres away and eps_test means nothing.
+void check_projects(const CameraModel& m, const std::string& path) {
+  constexpr double kMaxOffAxisDeg = 89.5;
+  double worst = 0;
+  for (const double u : {0.0, (m.width() - 1) / 2.0, m.width() - 1.0}) {
+    for (const double v : {0.0, (m.height() - 1) / 2.0, m.height() - 1.0}) {
+      Eigen::Vector2d xn;
+      const double deg =
+          m.unproject(Eigen::Vector2d(u, v), &xn) ? std::atan(xn.norm()) * 180 / M_PI : 90.0;
+      worst = std::max(worst, std::isfinite(deg) ? deg : 90.0);
+    }
+  }
+  if (worst > kMaxOffAxisDeg) {
+    throw Error(ErrorCode::kInvalidArgument,
+                "evaluate: the model in '" + path + "' (fx " + std::to_string(m.fx()) + ", fy " +
+                    std::to_string(m.fy()) + ") cannot project the test set: its image reaches " +
+                    std::to_string(worst) + " degrees off axis (the limit is " +
+                    std::to_string(kMaxOffAxisDeg) + ")");
+  }
+}
+
+}  // namespace
+
 POSECAL_API posecal_status posecal_evaluate(posecal_context* ctx, const char* result_path,
                                             const char* camera_uri, const char* options_json,
                                             char* buf, size_t* size) noexcept {
@@ -324,6 +352,7 @@ POSECAL_API posecal_status posecal_evaluate(posecal_context* ctx, const char* re
       return abi::copy_out_kept(*ctx->impl, __func__, key, text, buf, size);
 
     const CameraModel estimate = read_camera_model(result_path);
+    check_projects(estimate, result_path);
     const Uri uri = Uri::parse(camera_uri);
     ctx->impl->require_enabled(uri.scheme);
     const auto t0 = Clock::now();
@@ -367,7 +396,20 @@ POSECAL_API posecal_status posecal_evaluate(posecal_context* ctx, const char* re
       j["frames_seen"] = cts.seen;
     }
     j["frames_collected"] = test_set.size();
+    if (test_set.empty()) {
+      throw Error(ErrorCode::kDegenerate,
+                  "evaluate: no test frame from '" + std::string(camera_uri) +
+                      "' showed the board: nothing to evaluate '" + result_path + "' on");
+    }
     j.update(abi::evaluation_json(estimate, test_set, truth.get()));
+    if (j["test_frames"].get<int>() == 0) {
+      // A model that fits no frame's pose (e.g. fx 1e-9) is not a calibration of this camera.
+      throw Error(ErrorCode::kInvalidArgument,
+                  "evaluate: the model in '" + std::string(result_path) + "' (fx " +
+                      std::to_string(estimate.fx()) + ", fy " + std::to_string(estimate.fy()) +
+                      ") cannot project the test set: no pose fits any of the " +
+                      std::to_string(test_set.size()) + " frames");
+    }
     Json model;
     for (int i = 0; i < estimate.num_params(); ++i)
       model[estimate.param_names()[i]] = estimate.params()[i];
