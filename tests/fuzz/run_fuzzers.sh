@@ -48,6 +48,8 @@ for t in "${targets[@]}"; do
   rc=$?
   took=$(($(date +%s) - start))
   execs=$(sed -n 's/^stat::number_of_executed_units: *//p' "$log" | tail -1)
+  # -fork=N prints no final stats: its last "#N: cov: ..." line counts the executions.
+  [[ -z $execs ]] && execs=$(grep -o '^#[0-9]*' "$log" | tail -1 | tr -d '#')
   # The last status line with coverage: "#N  DONE|pulse|NEW ... cov: X ft: Y ..."
   cov=$(grep -o 'cov: [0-9]*' "$log" | tail -1 | cut -d' ' -f2)
   ft=$(grep -o 'ft: [0-9]*' "$log" | tail -1 | cut -d' ' -f2)
