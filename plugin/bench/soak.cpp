@@ -16,7 +16,8 @@
 // state); the start counts are taken after it. Every K finished calibrations the resident set
 // (/proc/self/statm), the open descriptors (/proc/self/fd) and the threads (/proc/self/task) are
 // sampled. At the end: the table, the RSS growth per calibration (least-squares slope over the
-// samples of the second half of the run), and the descriptors and threads after the workers
+// samples of the second half of the run, without those taken once fewer sessions than threads
+// remain), and the descriptors and threads after the workers
 // have ended. Exit status 1 if the slope exceeds B bytes per calibration (default 1024), if the
 // descriptors or threads are not back at their start counts, or if a calibration failed (an ABI
 // call returned an error); 2 on a usage error.
@@ -248,8 +249,11 @@ int main(int argc, char** argv) {
   std::sort(samples.begin(), samples.end(),
             [](const Sample& a, const Sample& b) { return a.calibrations < b.calibrations; });
   std::vector<double> x, y;
+  // The second half of the run, without the samples taken while the workers run out of work
+  // (fewer sessions alive than threads: RSS falls, which would hide growth).
+  const int last_full = nthreads > 1 ? calibrations - nthreads : calibrations;
   for (const Sample& s : samples) {
-    if (2 * s.calibrations > calibrations) {
+    if (2 * s.calibrations > calibrations && s.calibrations <= last_full) {
       x.push_back(s.calibrations);
       y.push_back(static_cast<double>(s.rss_bytes));
     }

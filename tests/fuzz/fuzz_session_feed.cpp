@@ -1,11 +1,11 @@
 // libFuzzer target: host frames through posecal_session_feed on an "external" session (the
 // pixel-format conversion, board detection and the engine's first steps on arbitrary pixels),
-// then posecal_session_last_frame and posecal_session_render_overlay on host images.
+// then posecal_session_last_frame and posecal_session_render_overlay on host images of two formats.
 //
 // Input: byte 0-1 width-1, 2-3 height-1 (each taken modulo 256: frames up to 256x256), byte 4
 // the pixel format (mod 3), byte 5 extra stride bytes (mod 8), byte 6 the number of frames fed
 // (1..4, all the same size); the rest are the pixels, repeated to fill the frame. Fails on a
-// crash, a sanitizer report, POSECAL_E_INTERNAL, or a refused frame that is valid by posecal.h.
+// crash, a sanitizer report, or a call that does not succeed on a frame the engine accepts.
 #include <cstddef>
 #include <cstdint>
 #include <cstdlib>
@@ -61,15 +61,23 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
       POSECAL_OK) {
     std::abort();
   }
+  // The engine needs at least 16x16 pixels (core/select/engine.cpp; posecal.h promises 1..65535
+  // per side, which is reported): a smaller frame must be refused as an invalid argument, with
+  // nothing processed. Any other frame of 16..256 pixels per side in a valid format is valid:
+  // only a finished session (after a calibration, impossible within 4 frames) may refuse it.
+  const bool too_small = w < 16 || h < 16;
   for (int i = 0; i < frames; ++i) {
     const posecal_status st = posecal_session_feed(s, &im);
-    // A frame of 1..256 pixels per side in a valid format is valid: only a finished session
-    // (after a calibration, impossible within 4 frames) may refuse it.
-    if (st != POSECAL_OK) std::abort();
+    if (st != (too_small ? POSECAL_E_INVALID_ARGUMENT : POSECAL_OK)) std::abort();
   }
-  // The last frame and the overlay, into host images of the camera's size in every format.
+  if (too_small) {
+    posecal_session_close(s);
+    return 0;
+  }
+  // The last frame and the overlay, into a host image of the camera's size in the frame's
+  // format and in one other format (a conversion).
   std::vector<uint8_t> out;
-  for (int f = 0; f < 3; ++f) {
+  for (int f : {format, (format + 1 + data[5] / 8 % 2) % 3}) {
     posecal_image o = image_of(&out, w, h, f, extra);
     if (posecal_session_last_frame(s, &o) != POSECAL_OK) std::abort();
     if (posecal_session_render_overlay(s, &o) != POSECAL_OK) std::abort();

@@ -27,6 +27,12 @@ else
   for src in "$here"/fuzz_*.cpp; do targets+=("$(basename "$src" .cpp)"); done
 fi
 
+# ASan's allocator returns freed memory to the kernel (madvise) and recycles its quarantine in
+# bursts; on a loaded machine such a burst inside one input has exceeded the 1 s timeout (three
+# "timeouts" whose inputs re-ran in 33-225 ms). Not returning memory and a smaller quarantine keep
+# the timeout about posecal's code. An ASAN_OPTIONS of the caller replaces this.
+export ASAN_OPTIONS=${ASAN_OPTIONS:-allocator_release_to_os_interval_ms=-1:quarantine_size_mb=64}
+
 failed=0
 printf '%-22s %12s %8s %8s %10s  %s\n' target executions cov ft seconds outcome
 for t in "${targets[@]}"; do
