@@ -3,6 +3,7 @@
 // issue 17.)
 #include <zlib.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <string_view>
@@ -144,7 +145,11 @@ void Board::write_printable(const std::string& path, double dpi, double margin_m
   if (static_cast<double>(out_w) * out_h > 4e8) {
     throw Error(ErrorCode::kInvalidArgument, "printable target: image would be too large");
   }
-  const int P = std::max(8, static_cast<int>(std::ceil(spec_.square_length_m * px_per_m)) * 4);
+  // At least 10 texels per marker side: OpenCV draws a marker only with room for its bits and
+  // border (7 + 2 for the largest dictionaries), whatever the dpi.
+  const double marker_ratio = spec_.marker_length_m > 0 ? spec_.marker_length_m / spec_.square_length_m : 1.0;
+  const int P = std::max({8, static_cast<int>(std::ceil(spec_.square_length_m * px_per_m)) * 4,
+                          static_cast<int>(std::ceil(10.0 / marker_ratio))});
   const BoardTexture tex = render(P, margin_m / spec_.square_length_m);
   cv::Mat out;
   cv::resize(tex.image, out, cv::Size(out_w, out_h), 0, 0, cv::INTER_AREA);

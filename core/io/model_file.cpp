@@ -447,6 +447,12 @@ CameraModel read_camera_model(const std::string& path) {
     return model_from(path, fs.root());
   } catch (const cv::Exception& e) {
     bad_file(path, "not valid OpenCV YAML/JSON: " + e.msg);
+  } catch (const Error&) {
+    throw;
+  } catch (const std::exception& e) {
+    // OpenCV's parser also lets std::length_error and the like through on malformed text
+    // (tests/fuzz/crashes/fuzz_model_file/length-error-escapes.yml).
+    bad_file(path, std::string("not valid OpenCV YAML/JSON: ") + e.what());
   }
 }
 
