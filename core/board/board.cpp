@@ -158,14 +158,26 @@ void BoardSpec::validate() const {
   }
 }
 
+namespace {
+
+// The shortest plain decimal that parses back to exactly `v` ("0.028"): the spec is written into
+// result files and journals and read back, so it must round-trip (a 10-digit text once turned a
+// marker of exactly 0.1 of the square into one just below it, which parse refuses).
+std::string length_text(double v) {
+  char buf[512];
+  const auto r = std::to_chars(buf, buf + sizeof buf, v, std::chars_format::fixed);
+  return r.ec == std::errc() ? std::string(buf, r.ptr) : std::to_string(v);
+}
+
+}  // namespace
+
 std::string BoardSpec::to_string() const {
   std::ostringstream os;
-  os.precision(10);
   if (type == BoardType::kCharuco) {
-    os << "charuco:" << cols << "x" << rows << ":" << square_length_m << ":" << marker_length_m
-       << ":" << dictionary;
+    os << "charuco:" << cols << "x" << rows << ":" << length_text(square_length_m) << ":"
+       << length_text(marker_length_m) << ":" << dictionary;
   } else {
-    os << "chessboard:" << cols << "x" << rows << ":" << square_length_m;
+    os << "chessboard:" << cols << "x" << rows << ":" << length_text(square_length_m);
   }
   return os.str();
 }
