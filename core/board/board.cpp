@@ -420,13 +420,18 @@ void Board::detect_charuco(const cv::Mat& gray, const DetectorOptions& options,
   std::vector<std::vector<cv::Point2f>> marker_corners;
   std::vector<int> marker_ids;
   const int k = search_factor(gray, options);
+  const cv::Mat search = k > 1 ? shrink_for_search(gray, k) : gray;
+  // Quads too small to be decoded are not searched (DetectorOptions::min_marker_pixels_per_cell).
+  const int cells = impl_->dictionary->markerSize + 2 * impl_->params->markerBorderBits;
+  const double min_perimeter_px = 4.0 * options.min_marker_pixels_per_cell * cells;
+  const cv::Ptr<cv::aruco::DetectorParameters> params =
+      cv::makePtr<cv::aruco::DetectorParameters>(*impl_->params);
+  params->minMarkerPerimeterRate = std::max(
+      params->minMarkerPerimeterRate, min_perimeter_px / std::max(search.cols, search.rows));
+  cv::aruco::detectMarkers(search, impl_->dictionary, marker_corners, marker_ids, params);
   if (k > 1) {
-    cv::aruco::detectMarkers(shrink_for_search(gray, k), impl_->dictionary, marker_corners,
-                             marker_ids, impl_->params);
     for (auto& quad : marker_corners)
       for (auto& p : quad) p = to_full_resolution(p, k);
-  } else {
-    cv::aruco::detectMarkers(gray, impl_->dictionary, marker_corners, marker_ids, impl_->params);
   }
   det->markers = static_cast<int>(marker_ids.size());
   if (marker_ids.empty()) return;

@@ -65,6 +65,51 @@ TEST(BoundedDetection, LargeNoiseFramesAreSearchedInBoundedTime) {
   }
 }
 
+// Small frames with a striped or checkered pattern gave OpenCV's marker search thousands of
+// candidate quads a few pixels around (its minimum perimeter is 3% of the longer side) and took
+// 0.6-1.6 s per frame (found by fuzz_session_feed; the patterns are its reproducers' bytes,
+// repeated row after row). Quads too small to hold a decodable marker are no longer searched:
+// measured 15-19 ms per frame. The bound here only catches a relapse on a loaded machine.
+TEST(BoundedDetection, StripedSmallFramesAreSearchedInBoundedTime) {
+  const Board charuco;
+  const unsigned char pattern[] = {0x3a, 0x04, 0x00, 0x2c, 0x2d, 0x3a, 0x04, 0x2c, 0x00};
+  for (const int side : {127, 136, 145, 256}) {
+    cv::Mat frame(side, side, CV_8U);
+    for (int i = 0; i < side * side; ++i) frame.data[i] = pattern[i % 9];
+    const auto t0 = std::chrono::steady_clock::now();
+    const Detection d = charuco.detect(frame);
+    const double s = seconds_since(t0);
+    std::printf("%dx%d striped: %.3f s, %d markers\n", side, side, s, d.markers);
+    EXPECT_EQ(d.markers, 0);
+    EXPECT_LT(s, 0.4) << side;  // 0.63-1.6 s before (release build)
+  }
+}
+
+// ... and every marker OpenCV's own rule finds is still found: ChArUco boards with markers of
+// 11-16 px (1.8-2.7 px per cell of DICT_4X4) in a 320x240 frame, where 3% of the longer side
+// allows quads of 2.4 px a side, give the same markers and corners with and without the minimum.
+TEST(BoundedDetection, SmallMarkersInSmallFramesAreStillFound) {
+  const CameraModel cam = CameraModel::opencv5(320, 240, 300, 300, 159.5, 119.5, {0, 0, 0, 0, 0});
+  const Board board(BoardSpec::parse("charuco:9x6:0.028:0.0182:DICT_4X4_50"));
+  RenderOptions ro;
+  ro.noise_sigma = 1;
+  ro.blur_sigma_px = 0.6;
+  SyntheticCamera sc(cam, board, ro);
+  DetectorOptions opencv_rule;
+  opencv_rule.min_marker_pixels_per_cell = 0;
+  int total = 0;
+  for (const double z : {0.34, 0.40, 0.45, 0.50}) {  // 300 px * 0.0182 m / z: 16 .. 11 px
+    const cv::Mat frame = sc.render(board_pose_at(board, Eigen::Vector3d(0, 0, z), 0.3, 0.1, 0.05));
+    const Detection d = board.detect(frame), o = board.detect(frame, opencv_rule);
+    std::printf("320x240, markers of %.1f px: %d markers, %zu corners (OpenCV's rule: %d, %zu)\n",
+                300 * 0.0182 / z, d.markers, d.size(), o.markers, o.size());
+    EXPECT_EQ(d.markers, o.markers) << z;
+    EXPECT_EQ(d.ids, o.ids) << z;
+    total += d.markers;
+  }
+  EXPECT_GE(total, 60);  // the scenes do show markers
+}
+
 // The corners of a large frame are refined at full resolution: at 12 MP they are as accurate as
 // at 1280x720 (SyntheticCamera.DetectedCornersMatchTrueProjections: < 0.1 px RMS, < 0.3 px).
 TEST(BoundedDetection, LargeFramesKeepTheirCornerAccuracy) {
