@@ -70,6 +70,7 @@ CalibrationEngine& CalibrationSession::engine() {
 }
 
 bool CalibrationSession::finished() const {
+  if (!no_frame_failure_.empty()) return true;
   return engine_ && (engine_->state() == EngineState::kConverged || engine_->state() == EngineState::kFailed);
 }
 
@@ -79,14 +80,19 @@ double CalibrationSession::wall_ms() const {
 
 void CalibrationSession::check_board_timeout() {
   const double limit_s = options_.board_timeout_s;
-  if (!engine_ || finished() || disconnected_ || limit_s <= 0) return;
+  if (finished() || disconnected_ || limit_s <= 0 || (!engine_ && !started_)) return;
   const double waited_s =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - board_clock_).count();
   if (waited_s < limit_s) return;
   char figures[96];
-  std::snprintf(figures, sizeof figures, " seen for %.3g s (board_timeout_s = %g)", waited_s,
-                limit_s);
-  engine_->give_up("no board (" + options_.board.to_string() + ")" + figures);
+  std::snprintf(figures, sizeof figures, " for %.3g s (board_timeout_s = %g)", waited_s, limit_s);
+  if (!engine_) {
+    // The camera was started but has not delivered a single frame: no engine exists to fail.
+    no_frame_failure_ = "no frame from the camera" + std::string(figures);
+    emit({SessionEvent::Kind::kCameraError, std::nullopt, no_frame_failure_});
+    return;
+  }
+  engine_->give_up("no board (" + options_.board.to_string() + ") seen" + figures);
 }
 
 FrameReport CalibrationSession::feed(const cv::Mat& image) {
@@ -132,6 +138,7 @@ StepStatus CalibrationSession::step(int timeout_ms) {
     }
     camera_->start();
     started_ = true;
+    board_clock_ = std::chrono::steady_clock::now();  // until the first frame: since the start
   }
   Frame frame;
   FrameStatus fs;

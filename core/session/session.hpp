@@ -39,8 +39,11 @@ class CalibrationSession {
   // Processes a frame the host supplies (external sessions); synchronous.
   FrameReport feed(const cv::Mat& image);
 
-  bool finished() const;  // converged or failed
+  bool finished() const;  // converged or failed (no_frame_failure() included)
   bool has_engine() const { return engine_ != nullptr; }
+  // Why a session whose camera never delivered a frame ended (board_timeout_s after the camera
+  // was started; there is no engine to fail then); "" otherwise.
+  const std::string& no_frame_failure() const { return no_frame_failure_; }
   CalibrationEngine& engine();  // Error(kState) before the first frame
   const CalibrationEngine* engine_ptr() const { return engine_.get(); }
   Camera& camera() { return *camera_; }
@@ -99,9 +102,10 @@ class CalibrationSession {
   bool journal_images_ = false;
   JournalContents resumed_;  // the journal read at open_journal, until the first frame
   JournalStatus journal_status_;
-  // Since when no board has been seen: the first frame, the last frame showing the board, the
-  // camera's return after a disconnect.
+  // Since when no board has been seen: the camera's start (until the first frame), the first
+  // frame, the last frame showing the board, the camera's return after a disconnect.
   std::chrono::steady_clock::time_point board_clock_;
+  std::string no_frame_failure_;
 };
 
 }  // namespace posecal

@@ -185,6 +185,7 @@ typedef enum posecal_pixel_format {
 
 /* A host image. struct_size = sizeof(posecal_image), set by the caller, so the struct can grow
  * in later ABI versions. width, height in 1..65535; stride_bytes >= width x bytes per pixel.
+ * A frame fed to a session must be at least 16x16 (smaller: POSECAL_E_INVALID_ARGUMENT).
  * The library never keeps `data` beyond the call. The layout is frozen (static_asserts in
  * plugin/src/abi_layout.cpp). */
 typedef struct posecal_image {
@@ -219,7 +220,8 @@ typedef struct posecal_image {
  *   variance at least as much as the rule's pose),
  *   "board_timeout_s" (120; 0 = never: the session ends as failed, "failure" in the status
  *   saying so, when no board has been seen for this many seconds of wall time since the first
- *   frame, the last frame showing the board or the camera's return after a disconnect),
+ *   frame, the last frame showing the board or the camera's return after a disconnect; a
+ *   camera that delivers no frame at all fails the same way, counted from the first step),
  *   "accuracy_px" (unset; a number in [0.001, 100]: the session converges when the 90th
  *   percentile of the projection error it predicts, "expected_error_p90_px" of the status and
  *   result, is at most this (9 of 10 such calibrations stay within it), and ends

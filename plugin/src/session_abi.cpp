@@ -204,11 +204,12 @@ Json status_json(posecal_session* s) {
   j["finished"] = cs.finished() || j["interrupted"].get<bool>();
   journal_json(cs, &j);
   if (!eng) {
-    j["state"] = "waiting_for_board";
+    j["state"] = cs.no_frame_failure().empty() ? "waiting_for_board" : "failed";
+    if (!cs.no_frame_failure().empty()) j["failure"] = cs.no_frame_failure();
     j["converged"] = false;
     j["keyframes"] = 0;
     j["target_parameter"] = nullptr;
-    j["guidance"] = "waiting for the first frame";
+    j["guidance"] = cs.no_frame_failure().empty() ? "waiting for the first frame" : cs.no_frame_failure();
     j["jaccard"] = nullptr;
     j["still"] = false;
     j["motion_px"] = nullptr;

@@ -333,6 +333,29 @@ TEST(BoundedSession, BlankFramesEndTheSessionAfterTheBoardTimeout) {
   EXPECT_THROW(s->feed(cv::Mat(480, 640, CV_8U, cv::Scalar(128))), Error);  // finished
 }
 
+// A started camera that never delivers a frame (the engine is made at the first frame) held the
+// session until the host's own limit: it now ends after board_timeout_s as well, saying so.
+TEST(BoundedSession, ACameraWithoutFramesEndsTheSessionAfterTheBoardTimeout) {
+  auto s = external_session(0.3);  // the external camera delivers nothing unless fed
+  const auto t0 = std::chrono::steady_clock::now();
+  StepStatus last = StepStatus::kTimeout;
+  while (seconds_since(t0) < 10.0 && last == StepStatus::kTimeout) last = s->step(20);
+  const double ran = seconds_since(t0);
+  EXPECT_EQ(last, StepStatus::kFinished);
+  ASSERT_TRUE(s->finished());
+  EXPECT_GE(ran, 0.3);
+  EXPECT_LT(ran, 5.0);
+  EXPECT_FALSE(s->has_engine());
+  const std::string why = s->no_frame_failure();
+  EXPECT_NE(why.find("no frame from the camera"), std::string::npos) << why;
+  EXPECT_NE(why.find("board_timeout_s = 0.3"), std::string::npos) << why;
+  EXPECT_THROW(s->feed(cv::Mat(480, 640, CV_8U, cv::Scalar(128))), Error);  // finished
+  auto never = external_session(0);  // 0: no limit
+  const auto t1 = std::chrono::steady_clock::now();
+  while (seconds_since(t1) < 0.6) ASSERT_EQ(never->step(20), StepStatus::kTimeout);
+  EXPECT_FALSE(never->finished());
+}
+
 TEST(BoundedSession, ABoardInViewOrATimeoutOfZeroKeepsTheSessionGoing) {
   const CameraModel cam = c525_reference_model();
   const Board board;
