@@ -142,10 +142,13 @@ void BoardSpec::validate() const {
          std::to_string(kMaxLengthM) + "] m");
   }
   if (type == BoardType::kCharuco) {
-    if (!(marker_length_m >= kMinMarkerRatio * square_length_m) ||
-        !(marker_length_m < square_length_m)) {
-      fail("marker length must be smaller than the square length and at least " +
-           std::to_string(kMinMarkerRatio) + " of it");
+    // The ratios are decimal fractions: a relative 1e-12 lets a marker of exactly 0.1 (or 0.95)
+    // of the square, written in decimal, through (0.0028 / 0.028 is just below 0.1 in binary).
+    const double tol = 1.0 + 1e-12;
+    if (!(marker_length_m * tol >= kMinMarkerRatio * square_length_m) ||
+        !(marker_length_m <= kMaxMarkerRatio * square_length_m * tol)) {
+      fail("marker length must be between " + std::to_string(kMinMarkerRatio) + " and " +
+           std::to_string(kMaxMarkerRatio) + " of the square length");
     }
     auto it = dictionary_table().find(dictionary);
     if (it == dictionary_table().end()) fail("unknown ArUco dictionary '" + dictionary + "'");

@@ -27,13 +27,16 @@ struct BoardSpec {
   std::string dictionary = "DICT_4X4_50";
 
   // Limits of a spec: 3 to kMaxSide squares (ChArUco) or inner corners (chessboard) per side;
-  // square length in [kMinSquareM, kMaxLengthM] metres; ChArUco marker length below the square
-  // length and at least kMinMarkerRatio of it (the renderer's 128 texels per square then give
-  // every dictionary's marker enough texels).
+  // square length in [kMinSquareM, kMaxLengthM] metres; ChArUco marker length between
+  // kMinMarkerRatio and kMaxMarkerRatio of the square (the renderer's 128 texels per square then
+  // give every dictionary's marker enough texels, and the marker keeps a white margin of at
+  // least 2.5% of the square on each side; OpenCV's board, which holds the lengths as float,
+  // rejects a marker that rounds to the square's length).
   static constexpr int kMaxSide = 100;
   static constexpr double kMinSquareM = 1e-4;
   static constexpr double kMaxLengthM = 10.0;
   static constexpr double kMinMarkerRatio = 0.1;
+  static constexpr double kMaxMarkerRatio = 0.95;
 
   // "charuco:9x6:0.028:0.0182:DICT_4X4_50" or "chessboard:9x6:0.025" (inner corners), lengths
   // in metres as plain decimal numbers. Throws Error(kInvalidArgument) naming the spec and the

@@ -66,8 +66,9 @@ std::string read_bounded(const std::string& path) {
 // parser builds (persistence_yml.cpp): block levels (indentation, "- " entries, "key:" chains
 // on one line) plus flow levels ([ and {). It accepts only the YAML OpenCV writes and people
 // write by hand: a line's first token (a key) does not start with a quote, a bracket or a tag;
-// one document; no tabs, control characters, multi-line literals or complex keys. Throws
-// bad_file on anything else, or as soon as the depth exceeds kMaxModelFileDepth.
+// every line outside brackets is a "key:" or a "- " entry; one document; no tabs, control
+// characters, multi-line literals or complex keys. Throws bad_file on anything else, or as soon
+// as the depth exceeds kMaxModelFileDepth.
 class YamlDepth {
  public:
   YamlDepth(const std::string& path, std::string_view text) : path_(path), t_(text) {}
@@ -163,7 +164,13 @@ class YamlDepth {
         fail("complex keys and multi-line literals are not supported");
       // A plain scalar, or a key: OpenCV's key ends at the line's first ':'.
       const size_t colon = t_.substr(0, eol).find(':', i);
-      if (colon == std::string_view::npos) return;
+      if (colon == std::string_view::npos) {
+        // A line of a bare scalar (a plain value going on over lines, or a stray word): OpenCV
+        // never writes one, and OpenCV 4.6's parser loops forever on some (" a: 1", then
+        // "bb--", then any line; tests/fuzz/crashes/fuzz_model_file/hang-bare-scalar-line.yml).
+        if (line_start) fail("a line with neither 'key:' nor '- ' (a value on a line of its own)");
+        return;
+      }
       ++depth, i = colon + 1, line_start = false;
     }
   }

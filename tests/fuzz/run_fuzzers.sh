@@ -34,6 +34,7 @@ fi
 export ASAN_OPTIONS=${ASAN_OPTIONS:-allocator_release_to_os_interval_ms=-1:quarantine_size_mb=64}
 
 failed=0
+failures=()
 printf '%-22s %12s %8s %8s %10s  %s\n' target executions cov ft seconds outcome
 for t in "${targets[@]}"; do
   bin=$build/bin/$t
@@ -67,5 +68,18 @@ for t in "${targets[@]}"; do
     outcome="FAILED (exit $rc: ${kind:-see $log}; input: ${artifact:-none})"
   fi
   printf '%-22s %12s %8s %8s %10s  %s\n' "$t" "${execs:-?}" "${cov:-?}" "${ft:-?}" "$took" "$outcome"
+  [[ $rc -ne 0 ]] && failures+=("$t|$log|${artifact:-}")
+done
+# A CI machine's build tree is gone after the run: print what a finding needs to be reproduced
+# (the sanitizer's report and the input, base64 up to 8 KiB) where the run's output keeps it.
+for f in "${failures[@]}"; do
+  IFS='|' read -r t log artifact <<<"$f"
+  echo
+  echo "=== $t: the end of $log"
+  grep -v '^#[0-9]' "$log" | tail -40
+  if [[ -n $artifact && -f $artifact ]]; then
+    echo "=== $t: the input ($(stat -c %s "$artifact") bytes; base64 -d to reproduce)"
+    head -c 8192 "$artifact" | base64
+  fi
 done
 exit $failed

@@ -42,6 +42,10 @@ TEST(BoardSpec, RejectsBadSpecsWithTheCause) {
       {"charuco:9x6:abc:0.0182:DICT_4X4_50", "not a number"},
       {"charuco:9x6:-0.028:0.0182:DICT_4X4_50", "positive"},
       {"charuco:9x6:0.028:0.03:DICT_4X4_50", "marker length"},
+      // Below the square in double, equal to it as float (OpenCV's board asserted; found by the
+      // fuzz smoke run), and a margin under 2.5% of the square.
+      {"charuco:3x3:0.1:0.0999999999:DICT_4X4_50", "marker length"},
+      {"charuco:9x6:0.028:0.0275:DICT_4X4_50", "marker length"},
       {"charuco:9x6:0.028:0.0182:DICT_9X9_1", "unknown ArUco dictionary"},
       {"charuco:20x20:0.028:0.0182:DICT_4X4_50", "markers"},
       {"chessboard:1x6:0.025", "grid"},
@@ -55,6 +59,15 @@ TEST(BoardSpec, RejectsBadSpecsWithTheCause) {
       EXPECT_EQ(e.code(), ErrorCode::kInvalidArgument);
       EXPECT_NE(std::string(e.what()).find(needle), std::string::npos) << spec << ": " << e.what();
     }
+  }
+}
+
+TEST(BoardSpec, AcceptsMarkersUpToTheLargestRatioAndBuildsTheBoard) {
+  for (const std::string spec : {"charuco:9x6:0.028:0.0028:DICT_4X4_50",
+                                 "charuco:9x6:0.028:0.0266:DICT_4X4_50",
+                                 "charuco:3x3:0.1:0.09:DICT_4X4_50"}) {
+    const BoardSpec parsed = BoardSpec::parse(spec);
+    EXPECT_NO_THROW(Board{parsed}) << spec;
   }
 }
 
