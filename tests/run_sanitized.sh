@@ -29,12 +29,18 @@ built=$(date +%s)
 # the (sanitized) libposecal.so, which brings the ASan runtime itself.
 export ASAN_OPTIONS=detect_leaks=1:abort_on_error=1:strict_string_checks=1:verify_asan_link_order=0
 export UBSAN_OPTIONS=print_stacktrace=1:halt_on_error=1
+# Leaks of libraries outside posecal that live until the process ends, each with its reason.
+export LSAN_OPTIONS=suppressions=$src/tests/lsan.supp:print_suppressions=0
 status=0
 ctest --test-dir "$build" -LE '^hw$|slow' -E '^plugin_python_' -j"$jobs" --output-on-failure \
   --timeout 900 || status=1
 
+# libstdc++ is preloaded too: ASan resolves the real __cxa_throw when it starts, and a python3
+# that does not link libstdc++ itself would leave it unresolved ("CHECK failed ... real___cxa_throw"
+# at the first C++ exception inside the library).
 libasan=$(gcc -print-file-name=libasan.so)
-LD_PRELOAD=$libasan ASAN_OPTIONS=detect_leaks=0:abort_on_error=1:verify_asan_link_order=0 \
+libstdcxx=$(gcc -print-file-name=libstdc++.so)
+LD_PRELOAD="$libasan $libstdcxx" ASAN_OPTIONS=detect_leaks=0:abort_on_error=1:verify_asan_link_order=0 \
   ctest --test-dir "$build" -R '^plugin_python_' --output-on-failure --timeout 900 || status=1
 
 echo "run_sanitized: build $((built - start)) s, tests $(($(date +%s) - built)) s, status $status"
