@@ -97,9 +97,20 @@ template <class M>
 
 // Each model's instance, compiled twice: for x86-64-v3 CPUs (AVX2, FMA; chosen at load time where
 // available: the accumulation over points is most of the cost of screening view candidates) and
-// for the baseline.
+// for the baseline. Not under ThreadSanitizer: it instruments the clones' resolver, which the
+// dynamic loader runs before TSan has started (every program crashed at load time).
+#if defined(__SANITIZE_THREAD__)
+#define POSECAL_INFORMATION_TARGETS
+#elif defined(__has_feature)
+#if __has_feature(thread_sanitizer)
+#define POSECAL_INFORMATION_TARGETS
+#endif
+#endif
+#ifndef POSECAL_INFORMATION_TARGETS
+#define POSECAL_INFORMATION_TARGETS __attribute__((target_clones("arch=x86-64-v3", "default")))
+#endif
 #define POSECAL_INFORMATION_CLONE(Model)                                                                     \
-  __attribute__((target_clones("arch=x86-64-v3", "default"))) bool frame_information_of(                   \
+  POSECAL_INFORMATION_TARGETS bool frame_information_of(                                                     \
       lens::Model, const CameraModel& model, const Eigen::Matrix3d& R, const Eigen::Vector3d& t,             \
       const std::vector<cv::Point3d>& board_points, const double* weights,                                   \
       Eigen::Matrix<double, kNumParamsOf<lens::Model>, kNumParamsOf<lens::Model>>* S) {                      \
@@ -107,6 +118,7 @@ template <class M>
   }
 POSECAL_LENS_MODELS(POSECAL_INFORMATION_CLONE)
 #undef POSECAL_INFORMATION_CLONE
+#undef POSECAL_INFORMATION_TARGETS
 
 // The information of every intrinsic into *S (num_params() square); false if the view does not
 // determine the board pose.

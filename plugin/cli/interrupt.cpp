@@ -2,21 +2,26 @@
 
 #include <signal.h>
 
+#include <atomic>
+
 namespace posecal::cli {
 
 namespace {
 
-volatile sig_atomic_t g_signal = 0;
+// Written by the handler, read by every session thread of a station: a lock-free atomic (safe
+// in a signal handler) rather than a volatile sig_atomic_t, which is only safe for the thread the
+// signal interrupts (ThreadSanitizer reported the station threads' reads as a data race).
+std::atomic<int> g_signal{0};
+static_assert(std::atomic<int>::is_always_lock_free, "the signal flag must be lock-free");
 
 // Async-signal-safe: a flag the command loops poll between frames, or, the second time, the
 // default action (the process ends by the signal, as a user pressing Ctrl-C twice expects).
 void on_signal(int signo) {
-  if (g_signal != 0) {
+  int none = 0;
+  if (!g_signal.compare_exchange_strong(none, signo)) {
     ::signal(signo, SIG_DFL);
     ::raise(signo);
-    return;
   }
-  g_signal = signo;
 }
 
 }  // namespace
@@ -32,8 +37,11 @@ void install_interrupt_handlers() {
   ::sigaction(SIGTERM, &sa, nullptr);
 }
 
-bool interrupt_requested() { return g_signal != 0; }
+bool interrupt_requested() { return g_signal.load() != 0; }
 
-int interrupt_exit_code() { return g_signal != 0 ? 128 + g_signal : 0; }
+int interrupt_exit_code() {
+  const int signo = g_signal.load();
+  return signo != 0 ? 128 + signo : 0;
+}
 
 }  // namespace posecal::cli
