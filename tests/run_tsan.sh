@@ -28,7 +28,11 @@ cmake --build "$build" -j"$jobs" --target test_c_abi test_abi_misuse test_cli te
   test_v4l2_emulated test_aravis
 built=$(date +%s)
 
-export TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1:suppressions=$src/tests/tsan.supp${TSAN_EXTRA:+:$TSAN_EXTRA}"
+# ignore_noninstrumented_modules: the interceptors (memcpy, memset, ...) check accesses only when
+# called from instrumented code. Aravis copies every GVSP packet with memcpy; checked, one
+# 1280x720 test of 12 frames took 228 s instead of 3.7 s and never reached a frame in time. A
+# race on posecal's memory is still seen from posecal's side of each access.
+export TSAN_OPTIONS="halt_on_error=1:second_deadlock_stack=1:ignore_noninstrumented_modules=1:suppressions=$src/tests/tsan.supp${TSAN_EXTRA:+:$TSAN_EXTRA}"
 status=0
 ctest --test-dir "$build" -j"$jobs" --output-on-failure --timeout 900 \
   -R '^plugin_c_abi$|^plugin_abi_misuse$|^Cli\.Station|^CliFiles\.Sig|^V4l2(Camera|Unplug|Hotplug|Identity|LibusbSource)|^EmulatorSpec\.|^Aravis' \

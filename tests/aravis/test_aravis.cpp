@@ -16,6 +16,7 @@
 #include <thread>
 
 #include "fake_gv_camera.hpp"
+#include "test_time.hpp"
 #include "netns.hpp"
 #include "posecal/aravis_backend.hpp"
 #include "common/error.hpp"
@@ -107,12 +108,21 @@ class AravisTest : public ::testing::Test {
   std::string uri() const { return std::string("aravis://") + kLoopback; }
 
   // Pulls one frame, failing on anything but kOk within the timeout.
-  static Frame pull(Camera& cam, int timeout_ms = 3000) {
+  static Frame pull(Camera& cam, int timeout_ms = test::scaled_ms(3000)) {
     Frame f;
     const FrameStatus s = cam.next_frame(timeout_ms, &f);
     EXPECT_EQ(s, FrameStatus::kOk)
         << "next_frame(" << timeout_ms << ") returned " << static_cast<int>(s);
     return f;
+  }
+  // No frame cut short by lost packets. On loopback none is in a normal build; under a sanitizer
+  // (time factor > 1) the simulator and the receiver run 5-15x slower and the kernel drops
+  // packets of a full socket buffer, which is not what these tests check. That an incomplete
+  // frame is never delivered is checked on every frame (exact()) in every build.
+  static void expect_none_incomplete(const CameraStats& s) {
+    if (test::time_factor() == 1) {
+      EXPECT_EQ(s.frames_incomplete, 0u);
+    }
   }
   // True if the frame is bit-identical to what the simulator sent.
   bool exact(const Frame& f, PixelFormat format, const cv::Rect& roi) const {
@@ -443,7 +453,7 @@ TEST_F(AravisTest, IllegalCallsInEachState) {
   EXPECT_NO_THROW(cam->validate(CameraConfig{}));
   EXPECT_EQ(error_of([&] { cam->next_frame(-1, &f); }).first, ErrorCode::kInvalidArgument);
   EXPECT_EQ(error_of([&] { cam->next_frame(10, nullptr); }).first, ErrorCode::kInvalidArgument);
-  EXPECT_EQ(cam->next_frame(3000, &f), FrameStatus::kOk);
+  EXPECT_EQ(cam->next_frame(test::scaled_ms(3000), &f), FrameStatus::kOk);
   cam->stop();
   EXPECT_EQ(cam->state(), CameraState::kConfigured);
   EXPECT_EQ(error_of([&] { cam->next_frame(10, &f); }).first, ErrorCode::kState);
@@ -484,7 +494,9 @@ TEST_F(AravisTest, FramesRightAfterTheStartAreDiscarded) {
     const double first_ms = ms_since(t0);
     if (discard_ms > 0) {
       EXPECT_GE(first_ms, discard_ms) << "a frame of the discarded start window was delivered";
-      EXPECT_GE(cam->stats().frames_dropped, 10u) << "about 18 frames arrive in 600 ms at 30 Hz";
+      // A slowed (sanitized) build renders and receives fewer frames in the window.
+      EXPECT_GE(cam->stats().frames_dropped, 10u / test::time_factor())
+          << "about 18 frames arrive in 600 ms at 30 Hz";
     } else {
       EXPECT_LT(first_ms, 400);
       EXPECT_EQ(cam->stats().frames_dropped, 0u);
@@ -520,7 +532,7 @@ TEST_F(AravisTest, Mono8FramesAreExactZeroCopyAndShowTheBoard) {
   EXPECT_EQ(detected, 3) << "the board should be found in every checked frame";
   const CameraStats s = cam->stats();
   EXPECT_EQ(s.frames_delivered, 12u);
-  EXPECT_EQ(s.frames_incomplete, 0u);
+  expect_none_incomplete(s);
 }
 
 TEST_F(AravisTest, ConvertedFormatsMono16Rgb8Bayer) {
@@ -559,7 +571,7 @@ TEST_F(AravisTest, ConvertedFormatsMono16Rgb8Bayer) {
     }
     cam->stop();
   }
-  EXPECT_EQ(cam->stats().frames_incomplete, 0u);
+  expect_none_incomplete(cam->stats());
 }
 
 TEST_F(AravisTest, LentBuffersAreBoundedAndNeverStarveTheStream) {
@@ -603,7 +615,7 @@ TEST_F(AravisTest, ConsumerReusingOneFrameStaysZeroCopy) {
   cam->start();
   Frame f;  // the previous frame's buffer goes back before the next one is lent
   for (int i = 0; i < 8; ++i) {
-    ASSERT_EQ(cam->next_frame(3000, &f), FrameStatus::kOk);
+    ASSERT_EQ(cam->next_frame(test::scaled_ms(3000), &f), FrameStatus::kOk);
     EXPECT_NE(f.hold, nullptr) << "frame " << i << " was copied";
     EXPECT_TRUE(exact(f, PixelFormat::kMono8, cv::Rect(0, 0, 640, 480)));
   }
@@ -620,13 +632,13 @@ TEST_F(AravisTest, BoundedQueueDropsTheOldestFrame) {
   std::this_thread::sleep_for(std::chrono::milliseconds(600));  // the consumer stalls
   const uint64_t newest = fake_->last_frame_id();
   const CameraStats s = cam->stats();
-  EXPECT_GE(s.frames_dropped, 40u) << "~120 frames were sent during the stall";
+  EXPECT_GE(s.frames_dropped, 40u / test::time_factor()) << "~120 frames were sent during the stall";
   // What is left are the newest frames: the first one is at most a few frames old.
   const Frame f = pull(*cam);
   const uint64_t age = (newest + 65536 - f.frame_id) % 65536;  // 16-bit GVSP frame ids
   EXPECT_LE(age, 8u) << "frame " << f.frame_id << " vs newest " << newest;
   EXPECT_TRUE(exact(f, PixelFormat::kMono8, *c.roi));
-  EXPECT_EQ(cam->stats().frames_incomplete, 0u);
+  expect_none_incomplete(cam->stats());
 }
 
 TEST_F(AravisTest, PacketLossNeverDeliversACorruptFrame) {
@@ -755,7 +767,7 @@ TEST_F(AravisTest, NoReconnectWhenDisabled) {
   cam->start();
   pull(*cam);
   fake_->stop();
-  ASSERT_TRUE(events.wait_for(CameraEvent::Kind::kDisconnected, 3000).has_value());
+  ASSERT_TRUE(events.wait_for(CameraEvent::Kind::kDisconnected, test::scaled_ms(3000)).has_value());
   ASSERT_TRUE(fake_->start());
   EXPECT_FALSE(events.wait_for(CameraEvent::Kind::kReconnected, 1500).has_value());
   EXPECT_EQ(cam->state(), CameraState::kDisconnected);
@@ -833,7 +845,7 @@ TEST(AravisMultiCamera, DISABLED_InsidePrivateNamespace) {
   for (int round = 0; round < 6; ++round) {
     for (size_t i = 0; i < cams.size(); ++i) {
       Frame f;
-      ASSERT_EQ(cams[i]->next_frame(3000, &f), FrameStatus::kOk) << fakes[i]->serial();
+      ASSERT_EQ(cams[i]->next_frame(test::scaled_ms(3000), &f), FrameStatus::kOk) << fakes[i]->serial();
       const cv::Mat e = fakes[i]->expected_engine(f.frame_id, PixelFormat::kMono8, kFullView);
       EXPECT_EQ(cv::norm(f.image, e, cv::NORM_INF), 0)
           << fakes[i]->serial() << " frame " << f.frame_id;
@@ -853,7 +865,7 @@ TEST(AravisMultiCamera, DISABLED_InsidePrivateNamespace) {
   EXPECT_EQ(st, FrameStatus::kDisconnected);
   EXPECT_LE(ms_since(t0), 2000);
   for (size_t i : {0, 2}) {
-    ASSERT_EQ(cams[i]->next_frame(3000, &f), FrameStatus::kOk);
+    ASSERT_EQ(cams[i]->next_frame(test::scaled_ms(3000), &f), FrameStatus::kOk);
     EXPECT_EQ(
         cv::norm(f.image, fakes[i]->expected_engine(f.frame_id, PixelFormat::kMono8, kFullView),
                  cv::NORM_INF),
