@@ -1,3 +1,5 @@
+// The one entry to camera-model files: format names, the choice of a format by extension or
+// content, the bounded read, the atomic write, and what the formats share.
 #include "io/model_file.hpp"
 
 #include <fcntl.h>
@@ -6,23 +8,68 @@
 
 #include <algorithm>
 #include <cerrno>
-#include <cmath>
 #include <cstring>
-#include <opencv2/core/persistence.hpp>
-#include <optional>
-#include <set>
-#include <string_view>
 
 #include "common/atomic_file.hpp"
-#include "common/clock.hpp"
 #include "common/error.hpp"
+#include "io/model_file_internal.hpp"
 
 namespace posecal {
 
+namespace model_io {
+
+void bad_file(const std::string& path, const std::string& why) {
+  throw Error(ErrorCode::kInvalidArgument, "camera model file '" + path + "': " + why);
+}
+
+void cannot_hold(const std::string& path, ModelFormat format, const CameraModel& model,
+                 const std::string& why) {
+  throw Error(ErrorCode::kInvalidArgument,
+              "cannot write '" + path + "' as " + model_format_name(format) + ": the lens model " +
+                  lens_model_name(model.lens_model()) + " " + why + "; nothing written");
+}
+
+CameraModel model_from_opencv(const std::string& path, int width, int height,
+                              const std::vector<double>& K9, const std::vector<double>& dist,
+                              const std::string& what) {
+  CameraModel model;
+  try {
+    model = CameraModel::from_opencv(width, height, cv::Matx33d(K9.data()), dist);
+  } catch (const Error& e) {
+    bad_file(path, what + ": " + e.what());
+  }
+  std::string why;
+  if (!model.is_valid(&why)) bad_file(path, why);
+  return model;
+}
+
+}  // namespace model_io
+
+using model_io::bad_file;
+
 namespace {
 
-[[noreturn]] void bad_file(const std::string& path, const std::string& why) {
-  throw Error(ErrorCode::kInvalidArgument, "camera model file '" + path + "': " + why);
+struct FormatInfo {
+  ModelFormat format;
+  const char* name;
+  const char* extension;
+};
+constexpr FormatInfo kFormats[] = {{ModelFormat::kOpenCV, "opencv", ".yml"},
+                                   {ModelFormat::kRos, "ros", ".yaml"},
+                                   {ModelFormat::kMrcal, "mrcal", ".cameramodel"},
+                                   {ModelFormat::kKalibr, "kalibr", ".yaml"},
+                                   {ModelFormat::kHalcon, "halcon", ".dat"}};
+
+const FormatInfo& info(ModelFormat f) {
+  for (const FormatInfo& i : kFormats) {
+    if (i.format == f) return i;
+  }
+  throw Error(ErrorCode::kInternal, "unknown model format");
+}
+
+bool ends_with(const std::string& s, std::string_view suffix) {
+  return s.size() > suffix.size() &&
+         s.compare(s.size() - suffix.size(), suffix.size(), suffix) == 0;
 }
 
 // Reads the whole file, refusing what is not a regular file (a FIFO or a device would block
@@ -62,441 +109,146 @@ std::string read_bounded(const std::string& path) {
   return text;
 }
 
-// The deepest nesting of an OpenCV YAML text, following the structure OpenCV 4.6's recursive
-// parser builds (persistence_yml.cpp): block levels (indentation, "- " entries, "key:" chains
-// on one line) plus flow levels ([ and {). It accepts only the YAML OpenCV writes and people
-// write by hand: a line's first token (a key) does not start with a quote, a bracket or a tag;
-// every line outside brackets is a "key:" or a "- " entry; one document; no tabs, control
-// characters, multi-line literals or complex keys. Throws bad_file on anything else, or as soon
-// as the depth exceeds kMaxModelFileDepth.
-class YamlDepth {
- public:
-  YamlDepth(const std::string& path, std::string_view text) : path_(path), t_(text) {}
-
-  void run() {
-    bool header = true;
-    while (p_ < t_.size()) {
-      const size_t eol = line_end(p_);
-      if (flow_.empty()) {
-        block_line(eol, &header);
-      } else {
-        flow(eol);
-      }
-      p_ = eol + 1;
-    }
-    if (!flow_.empty()) fail("unclosed '" + std::string(1, flow_.back()) + "'");
-  }
-
- private:
-  [[noreturn]] void fail(const std::string& why) const {
-    bad_file(path_, "not OpenCV YAML (line " + std::to_string(line_) + ": " + why + ")");
-  }
-  size_t line_end(size_t from) {
-    ++line_;
-    const size_t e = t_.find('\n', from);
-    return e == std::string_view::npos ? t_.size() : e;
-  }
-  char at(size_t i, size_t eol) const { return i < eol ? t_[i] : '\n'; }
-  size_t skip_spaces(size_t i, size_t eol) const {
-    while (i < eol && t_[i] == ' ') ++i;
-    return i;
-  }
-  void level(int depth) {
-    if (depth > kMaxModelFileDepth) {
-      fail("nesting deeper than the limit of " + std::to_string(kMaxModelFileDepth) + " levels");
+// The first key of a text starting with '{' (JSON or a Python dict), skipping spaces and '#'
+// comments; empty if there is none.
+std::string first_brace_key(std::string_view t) {
+  size_t i = 1;
+  while (i < t.size()) {
+    if (t[i] == '#') {
+      i = t.find('\n', i);
+      if (i == std::string_view::npos) return {};
+    } else if (t[i] == ' ' || t[i] == '\n' || t[i] == '\r' || t[i] == '\t') {
+      ++i;
+    } else {
+      break;
     }
   }
-  bool is_end(char c) const { return c == '\n' || c == '#'; }
-
-  // A line outside flow collections.
-  void block_line(size_t eol, bool* header) {
-    const size_t col = skip_spaces(p_, eol);
-    if (is_end(at(col, eol))) return;
-    const std::string_view line = t_.substr(p_, eol - p_);
-    if (col == p_ && line[0] == '%') {
-      if (!*header) fail("a directive after the document's start");
-      return;
-    }
-    if (col == p_ && (line.substr(0, 3) == "---" || line.substr(0, 3) == "...")) {
-      if (!*header || line.find_first_not_of(' ', 3) != std::string_view::npos) {
-        fail("one document, '---' on a line of its own");
-      }
-      *header = false;
-      return;
-    }
-    *header = false;
-    const int indent = static_cast<int>(col - p_);
-    while (!indents_.empty() && indents_.back() > indent) indents_.pop_back();
-    if (indents_.empty() || indents_.back() < indent) indents_.push_back(indent);
-    const char c = at(col, eol);
-    if (c == '"' || c == '\'' || c == '[' || c == '{' || c == '!') {
-      fail("a line may not start with " + std::string(1, c) + " (keys are plain)");
-    }
-    value(col, eol, static_cast<int>(indents_.size()), true);
-  }
-
-  // A value (or a key, at a line's start) at position i in block context.
-  void value(size_t i, size_t eol, int depth, bool line_start) {
-    while (true) {
-      level(depth);
-      i = skip_spaces(i, eol);
-      const char c = at(i, eol), d = at(i + 1, eol);
-      if (is_end(c)) return;
-      if (c == '-' && !std::isdigit(static_cast<unsigned char>(d)) && d != '.') {
-        ++depth, ++i, line_start = false;  // a block sequence entry
-        continue;
-      }
-      if (!line_start && (c == '"' || c == '\'')) {
-        i = quoted(i, eol);
-        return rest_is_comment(i, eol);
-      }
-      if (!line_start && (c == '[' || c == '{')) {
-        base_ = depth;
-        p_ = i + 1;
-        open_flow(c);
-        return flow(eol);
-      }
-      if (!line_start && c == '!') {  // a tag, then the value (here or on the next lines)
-        while (i < eol && t_[i] != ' ') ++i;
-        continue;
-      }
-      if (c == '?' || c == '|' || c == '>')
-        fail("complex keys and multi-line literals are not supported");
-      // A plain scalar, or a key: OpenCV's key ends at the line's first ':'.
-      const size_t colon = t_.substr(0, eol).find(':', i);
-      if (colon == std::string_view::npos) {
-        // A line of a bare scalar (a plain value going on over lines, or a stray word): OpenCV
-        // never writes one, and OpenCV 4.6's parser loops forever on some (" a: 1", then
-        // "bb--", then any line; tests/fuzz/crashes/fuzz_model_file/hang-bare-scalar-line.yml).
-        if (line_start) fail("a line with neither 'key:' nor '- ' (a value on a line of its own)");
-        return;
-      }
-      ++depth, i = colon + 1, line_start = false;
-    }
-  }
-
-  // A quoted string starting at i; returns the position after its closing quote.
-  size_t quoted(size_t i, size_t eol) const {
-    const char q = t_[i];
-    for (++i; i < eol; ++i) {
-      if (q == '"' && t_[i] == '\\') {
-        ++i;
-      } else if (t_[i] == q) {
-        if (q == '\'' && at(i + 1, eol) == '\'') {
-          ++i;
-          continue;
-        }
-        return i + 1;
-      }
-    }
-    fail("unterminated string");
-  }
-  void rest_is_comment(size_t i, size_t eol) const {
-    i = skip_spaces(i, eol);
-    if (!is_end(at(i, eol))) fail("text after a value");
-  }
-
-  void open_flow(char c) {
-    flow_.push_back(c);
-    state_ = kElementOrClose;
-    level(base_ + static_cast<int>(flow_.size()));
-  }
-
-  // Flow collections from p_ to the line's end (they may go on over lines).
-  void flow(size_t eol) {
-    size_t i = p_;
-    while (!flow_.empty()) {
-      i = skip_spaces(i, eol);
-      const char c = at(i, eol);
-      if (is_end(c)) return;  // a comment or the line's end: the collection goes on
-      if (c == ']' || c == '}') {
-        if (state_ == kElement && c == '}') fail("',' before '}'");
-        if ((c == ']') != (flow_.back() == '[')) fail("mismatched '" + std::string(1, c) + "'");
-        flow_.pop_back();
-        state_ = kSeparatorOrClose;
-        ++i;
-        continue;
-      }
-      if (state_ == kSeparatorOrClose) {
-        if (c != ',') fail("expected ',' or a closing bracket");
-        state_ = kElement;
-        ++i;
-        continue;
-      }
-      i = flow_element(i, eol);
-    }
-    rest_is_comment(i, eol);
-  }
-
-  // One element of the innermost flow collection at i (a key first, in a map).
-  size_t flow_element(size_t i, size_t eol) {
-    if (flow_.back() == '{') {
-      const size_t colon = t_.substr(0, eol).find(':', i);
-      if (colon == std::string_view::npos) fail("a flow map's key without ':'");
-      i = skip_spaces(colon + 1, eol);
-    }
-    while (at(i, eol) == '!') {  // a tag
-      while (i < eol && t_[i] != ' ') ++i;
-      i = skip_spaces(i, eol);
-    }
-    const char c = at(i, eol);
-    if (c == '[' || c == '{') {
-      open_flow(c);
-      return i + 1;
-    }
-    state_ = kSeparatorOrClose;
-    if (c == '"' || c == '\'') return quoted(i, eol);
-    while (i < eol && t_[i] != ',' && t_[i] != ']' && t_[i] != '}') ++i;  // a plain scalar
-    return i;
-  }
-
-  enum State { kElementOrClose, kElement, kSeparatorOrClose };
-  const std::string& path_;
-  std::string_view t_;
-  size_t p_ = 0;
-  int line_ = 0;
-  std::vector<int> indents_;
-  std::string flow_;  // the open flow collections, '[' or '{'
-  int base_ = 0;      // the block depth the flow collections sit in
-  State state_ = kElementOrClose;
-};
-
-// The deepest bracket nesting of a JSON text (strings and OpenCV's // and /* */ comments
-// skipped); throws bad_file beyond kMaxModelFileDepth.
-void check_json_depth(const std::string& path, std::string_view t) {
-  int depth = 0;
-  for (size_t i = 0; i < t.size(); ++i) {
-    const char c = t[i];
-    if (c == '"') {
-      for (++i; i < t.size() && t[i] != '"'; ++i) {
-        if (t[i] == '\n') bad_file(path, "not JSON: a string runs over a line's end");
-        if (t[i] == '\\') ++i;
-      }
-    } else if (c == '/' && i + 1 < t.size() && t[i + 1] == '/') {
-      i = std::min(t.find('\n', i), t.size());
-    } else if (c == '/' && i + 1 < t.size() && t[i + 1] == '*') {
-      const size_t e = t.find("*/", i + 2);
-      i = e == std::string_view::npos ? t.size() : e + 1;
-    } else if (c == '[' || c == '{') {
-      if (++depth > kMaxModelFileDepth) {
-        bad_file(path, "nesting deeper than the limit of " + std::to_string(kMaxModelFileDepth) +
-                           " levels");
-      }
-    } else if (c == ']' || c == '}') {
-      if (--depth < 0) bad_file(path, "not JSON: unbalanced '" + std::string(1, c) + "'");
-    }
-  }
+  if (i >= t.size() || (t[i] != '\'' && t[i] != '"')) return {};
+  const size_t end = t.find(t[i], i + 1);
+  return end == std::string_view::npos ? std::string() : std::string(t.substr(i + 1, end - i - 1));
 }
 
-// Checks the text before OpenCV parses it: printable, one of OpenCV's formats (by content, as
-// OpenCV decides), nesting within the limit. Returns the text without a UTF-8 byte-order mark.
-std::string_view check_text(const std::string& path, std::string_view t) {
+// The format of a file's text (model_file.hpp: by content when the extension does not decide),
+// from its first line that is not blank or a '#' comment.
+ModelFormat format_of_text(std::string_view t) {
   if (t.substr(0, 3) == "\xEF\xBB\xBF") t.remove_prefix(3);
-  const bool yaml = t.substr(0, 5) == "%YAML";
-  for (size_t i = 0; i < t.size(); ++i) {
-    const auto u = static_cast<unsigned char>(t[i]);
-    if (u >= 0x20 || t[i] == '\n' || (t[i] == '\r' && i + 1 < t.size() && t[i + 1] == '\n') ||
-        (t[i] == '\t' && !yaml)) {
-      continue;
+  for (size_t i = 0; i < t.size();) {
+    const size_t nl = std::min(t.find('\n', i), t.size());
+    const std::string_view line = t.substr(i, nl - i);
+    i = nl + 1;
+    const size_t first = line.find_first_not_of(" \t\r");
+    if (first == std::string_view::npos || line[first] == '#') continue;
+    const std::string_view content = line.substr(first);
+    if (content.substr(0, 6) == "%YAML:") return ModelFormat::kOpenCV;  // OpenCV's "%YAML:1.0"
+    if (content[0] == '<') return ModelFormat::kOpenCV;
+    if (content.substr(0, 9) == "ParGroup:") return ModelFormat::kHalcon;
+    if (content[0] == '{') {
+      const std::string key = first_brace_key(t.substr(t.find('{')));
+      return key == "lensmodel" || key == "intrinsics" || key == "extrinsics" ||
+                     key == "imagersize" || key == "valid_intrinsics_region"
+                 ? ModelFormat::kMrcal
+                 : ModelFormat::kOpenCV;
     }
-    bad_file(path, "control character" + std::string(yaml ? " or tab" : "") + " at byte " +
-                       std::to_string(i));
+    // YAML without OpenCV's header (a "%YAML 1.x" directive and '---' skipped): Kalibr's
+    // camchain starts with its cameras.
+    if (content[0] == '%' || content.substr(0, 3) == "---") continue;
+    return content.substr(0, 5) == "cam0:" ? ModelFormat::kKalibr : ModelFormat::kRos;
   }
-  if (yaml) {
-    std::string no_cr(t);
-    no_cr.erase(std::remove(no_cr.begin(), no_cr.end(), '\r'), no_cr.end());
-    YamlDepth(path, no_cr).run();
-  } else if (t.substr(0, 1) == "{") {
-    check_json_depth(path, t);
-  } else {
-    bad_file(path, "neither OpenCV YAML (first line %YAML:1.0) nor JSON (starting with '{')");
-  }
-  return t;
+  return ModelFormat::kOpenCV;  // no content: refused there as empty
 }
 
 }  // namespace
 
-namespace {
+const char* model_format_name(ModelFormat format) { return info(format).name; }
 
-// The top-level keys read_camera_model accepts: posecal's own (write_camera_model and the
-// extras.strings of its callers) and those of OpenCV's calibration sample
-// (samples/cpp/calibration.cpp).
-const std::set<std::string>& known_keys() {
-  static const std::set<std::string> keys = {
-      // posecal
-      "calibration_time", "nr_of_frames", "image_width", "image_height", "lens_model",
-      "camera_matrix", "distortion_coefficients", "avg_reprojection_error", "intrinsic_names",
-      "std_deviations_intrinsics", "target", "camera_uri", "camera_id", "converged", "interrupted",
-      kModelFileEndKey,
-      // OpenCV's calibration sample
-      "board_width", "board_height", "square_size", "aspectRatio", "flags", "flagValue",
-      "fisheye_model", "per_view_reprojection_errors", "extrinsic_parameters", "image_points",
-      "grid_points"};
-  return keys;
+const char* model_format_extension(ModelFormat format) { return info(format).extension; }
+
+std::optional<ModelFormat> model_format_from_name(std::string_view name) {
+  for (const FormatInfo& i : kFormats) {
+    if (name == i.name) return i.format;
+  }
+  return std::nullopt;
 }
 
-// Unique, known top-level keys; a posecal-written file (one with lens_model) ends with
-// kModelFileEndKey: 1.
-void check_keys(const std::string& path, const cv::FileNode& root) {
-  if (!root.isMap()) bad_file(path, "the top level is not a map of keys");
-  std::set<std::string> seen;
-  std::string last;
-  for (const cv::FileNode& n : root) {
-    last = n.name();
-    if (!known_keys().count(last)) bad_file(path, "unknown key '" + last + "'");
-    if (!seen.insert(last).second) bad_file(path, "key '" + last + "' appears twice");
-  }
-  if (!seen.count("lens_model")) return;
-  const cv::FileNode end = root[kModelFileEndKey];
-  if (last != kModelFileEndKey || !end.isInt() || static_cast<int>(end) != 1) {
-    bad_file(path, std::string("written by posecal (it has lens_model) but does not end with '") +
-                       kModelFileEndKey + ": 1': truncated, or written before posecal checked it");
-  }
+const std::vector<ModelFormat>& model_formats() {
+  static const std::vector<ModelFormat> all = [] {
+    std::vector<ModelFormat> v;
+    for (const FormatInfo& i : kFormats) v.push_back(i.format);
+    return v;
+  }();
+  return all;
 }
 
-cv::FileNode need(const std::string& path, const cv::FileNode& root, const char* key) {
-  const cv::FileNode n = root[key];
-  if (n.empty() || n.isNone()) bad_file(path, std::string("has no field '") + key + "'");
-  return n;
+std::optional<ModelFormat> model_format_from_path(const std::string& path) {
+  if (ends_with(path, ".cameramodel")) return ModelFormat::kMrcal;
+  for (const char* e : {".yml", ".yaml", ".json", ".xml"}) {
+    if (ends_with(path, e)) return ModelFormat::kOpenCV;
+  }
+  return std::nullopt;
 }
 
-// An OpenCV matrix (rows, cols, dt d or f, data: rows x cols numbers), row-major.
-std::vector<double> read_matrix(const std::string& path, const cv::FileNode& n, const char* key,
-                                int* rows, int* cols) {
-  const std::string what = std::string("'") + key + "' ";
-  if (!n.isMap()) bad_file(path, what + "is not an OpenCV matrix (!!opencv-matrix)");
-  for (const std::string& k : n.keys()) {
-    if (k != "rows" && k != "cols" && k != "dt" && k != "data" && k != "type_id") {
-      bad_file(path, what + "has an unknown field '" + k + "'");
-    }
-  }
-  const cv::FileNode r = n["rows"], c = n["cols"], dt = n["dt"], data = n["data"];
-  if (!r.isInt() || !c.isInt() || !dt.isString() || !data.isSeq()) {
-    bad_file(path, what + "needs integer rows and cols, a dt and a data list");
-  }
-  if (dt.string() != "d" && dt.string() != "f") {
-    bad_file(path, what + "has dt '" + dt.string() + "'; posecal reads dt d or f (floating point)");
-  }
-  *rows = static_cast<int>(r);
-  *cols = static_cast<int>(c);
-  if (*rows < 1 || *cols < 1 || *rows > 16 || *cols > 16 ||
-      data.size() != static_cast<size_t>(*rows) * static_cast<size_t>(*cols)) {
-    bad_file(path, what + "has " + std::to_string(data.size()) + " data values for " +
-                       std::to_string(*rows) + "x" + std::to_string(*cols));
-  }
-  std::vector<double> v;
-  for (const cv::FileNode& x : data) {
-    if (!x.isInt() && !x.isReal()) bad_file(path, what + "has a data value that is not a number");
-    v.push_back(static_cast<double>(x));
-  }
-  return v;
-}
-
-int read_size(const std::string& path, const cv::FileNode& root, const char* key) {
-  const cv::FileNode n = need(path, root, key);
-  const double v = n.isInt() || n.isReal() ? static_cast<double>(n) : 0.0;
-  if (!(v >= 1 && v <= CameraModel::kMaxImageSide && v == std::floor(v))) {
-    bad_file(path, std::string("'") + key + "' must be an integer within the limit [1, " +
-                       std::to_string(CameraModel::kMaxImageSide) + "]");
-  }
-  return static_cast<int>(v);
-}
-
-// lens_model names a model of the lens table, the one the coefficients give.
-void check_lens_model(const std::string& path, const cv::FileNode& n, LensModel deduced) {
-  std::string names;
-  for (const LensModel m : lens_models()) {
-    names += std::string(names.empty() ? "" : ", ") + lens_model_name(m);
-  }
-  const std::string value = n.isString() ? n.string() : std::string();
-  const std::optional<LensModel> named = lens_model_from_name(value);
-  if (!named.has_value()) bad_file(path, "'lens_model' '" + value + "' is not one of: " + names);
-  const LensModel m = named.value_or(deduced);
-  if (m != deduced) {
-    bad_file(path, "'lens_model' " + value + " does not match the distortion_coefficients (" +
-                       lens_model_name(deduced) + ")");
-  }
-}
-
-CameraModel model_from(const std::string& path, const cv::FileNode& root) {
-  check_keys(path, root);
-  int kr = 0, kc = 0, dr = 0, dc = 0;
-  const std::vector<double> k =
-      read_matrix(path, need(path, root, "camera_matrix"), "camera_matrix", &kr, &kc);
-  const std::vector<double> d = read_matrix(path, need(path, root, "distortion_coefficients"),
-                                            "distortion_coefficients", &dr, &dc);
-  const int w = read_size(path, root, "image_width"), h = read_size(path, root, "image_height");
-  if (kr != 3 || kc != 3) bad_file(path, "'camera_matrix' is not 3x3");
-  if (k[3] != 0 || k[6] != 0 || k[7] != 0 || k[8] != 1) {
-    bad_file(path, "'camera_matrix' must be [fx s cx; 0 fy cy; 0 0 1]");
-  }
-  if (dr != 1 && dc != 1) bad_file(path, "'distortion_coefficients' is not a vector");
-  CameraModel model;
-  try {
-    model = CameraModel::from_opencv(w, h, cv::Matx33d(k.data()), d);
-  } catch (const Error& e) {
-    throw Error(e.code(), "camera model file '" + path + "': " + e.what());
-  }
-  if (!root["lens_model"].empty()) check_lens_model(path, root["lens_model"], model.lens_model());
-  std::string why;
-  if (!model.is_valid(&why)) bad_file(path, why);
-  return model;
-}
-
-}  // namespace
-
-CameraModel read_camera_model(const std::string& path) {
+ModelFile read_model_file(const std::string& path) {
   const std::string bytes = read_bounded(path);
-  const std::string_view text = check_text(path, bytes);
-  try {
-    const cv::FileStorage fs(std::string(text), cv::FileStorage::READ | cv::FileStorage::MEMORY);
-    if (!fs.isOpened()) bad_file(path, "OpenCV cannot read it");
-    return model_from(path, fs.root());
-  } catch (const cv::Exception& e) {
-    bad_file(path, "not valid OpenCV YAML/JSON: " + e.msg);
-  } catch (const Error&) {
-    throw;
-  } catch (const std::exception& e) {
-    // OpenCV's parser also lets std::length_error and the like through on malformed text
-    // (tests/fuzz/crashes/fuzz_model_file/length-error-escapes.yml).
-    bad_file(path, std::string("not valid OpenCV YAML/JSON: ") + e.what());
+  const ModelFormat format =
+      ends_with(path, ".cameramodel") ? ModelFormat::kMrcal : format_of_text(bytes);
+  switch (format) {
+    case ModelFormat::kOpenCV:
+      return model_io::parse_opencv(path, bytes);
+    case ModelFormat::kRos:
+      return model_io::parse_ros(path, bytes);
+    case ModelFormat::kMrcal:
+      return model_io::parse_mrcal(path, bytes);
+    case ModelFormat::kKalibr:
+      return model_io::parse_kalibr(path, bytes);
+    case ModelFormat::kHalcon:
+      return model_io::parse_halcon(path, bytes);
   }
+  throw Error(ErrorCode::kInternal, "unknown model format");
 }
+
+CameraModel read_camera_model(const std::string& path) { return read_model_file(path).model; }
 
 void write_camera_model(const std::string& path, const CameraModel& model,
-                        const CalibrationFileExtras& extras) {
-  // Composed in memory, then written atomically: a full disk or a kill leaves the old file.
-  const bool json = path.size() >= 5 && path.compare(path.size() - 5, 5, ".json") == 0;
-  cv::FileStorage fs;
-  try {
-    fs.open("", cv::FileStorage::WRITE | cv::FileStorage::MEMORY |
-                    (json ? cv::FileStorage::FORMAT_JSON : cv::FileStorage::FORMAT_YAML));
-  } catch (const cv::Exception& e) {
-    throw Error(ErrorCode::kInternal, "cannot compose calibration file '" + path + "': " + e.msg);
-  }
-  fs << "calibration_time" << utc_now_iso8601();
-  if (extras.nr_of_frames >= 0) fs << "nr_of_frames" << extras.nr_of_frames;
-  fs << "image_width" << model.width();
-  fs << "image_height" << model.height();
-  fs << "lens_model" << std::string(lens_model_name(model.lens_model()));
-  fs << "camera_matrix" << cv::Mat(model.camera_matrix());
-  const std::vector<double> d = model.distortion_coefficients();
-  fs << "distortion_coefficients"
-     << cv::Mat(1, static_cast<int>(d.size()), CV_64F, const_cast<double*>(d.data()));
-  if (extras.avg_reprojection_error >= 0) {
-    fs << "avg_reprojection_error" << extras.avg_reprojection_error;
-  }
-  if (!extras.param_std.empty()) {
+                        const CalibrationFileExtras& extras, std::optional<ModelFormat> format) {
+  const std::optional<ModelFormat> by_extension = model_format_from_path(path);
+  if (!format && !by_extension) {
     std::string names;
-    for (const auto& n : model.param_names()) names += (names.empty() ? "" : " ") + n;
-    fs << "intrinsic_names" << names;
-    fs << "std_deviations_intrinsics"
-       << cv::Mat(1, static_cast<int>(extras.param_std.size()), CV_64F,
-                  const_cast<double*>(extras.param_std.data()));
+    for (const FormatInfo& i : kFormats) names += std::string(names.empty() ? "" : ", ") + i.name;
+    throw Error(ErrorCode::kInvalidArgument,
+                "output file '" + path +
+                    "': use .yml, .yaml, .json or .xml (OpenCV) or .cameramodel (mrcal), or name "
+                    "a format (" +
+                    names + ")");
   }
-  for (const auto& [key, value] : extras.strings) fs << key << value;
-  fs << kModelFileEndKey << 1;  // the last key: read_camera_model refuses a file cut short
-  const std::string text = fs.releaseAndGetString();
+  const ModelFormat f = format.value_or(*by_extension);
+  // The reader decides .cameramodel by its name: another format under it would not read back;
+  // the other names would, but say what they hold. ROS and Kalibr files are YAML (.yml, .yaml).
+  const bool yaml_name = ends_with(path, ".yml") || ends_with(path, ".yaml");
+  const bool yaml_format = f == ModelFormat::kRos || f == ModelFormat::kKalibr;
+  if (by_extension && f != *by_extension && !(yaml_name && yaml_format)) {
+    throw Error(ErrorCode::kInvalidArgument, "output file '" + path + "': the extension is for " +
+                                                 model_format_name(*by_extension) + " files, not " +
+                                                 model_format_name(f) + " (use " +
+                                                 model_format_extension(f) + ")");
+  }
+  std::string text;
+  switch (f) {
+    case ModelFormat::kOpenCV:
+      text = model_io::compose_opencv(path, model, extras);
+      break;
+    case ModelFormat::kRos:
+      text = model_io::compose_ros(path, model, extras);
+      break;
+    case ModelFormat::kMrcal:
+      text = model_io::compose_mrcal(path, model);
+      break;
+    case ModelFormat::kKalibr:
+      text = model_io::compose_kalibr(path, model);
+      break;
+    case ModelFormat::kHalcon:
+      text = model_io::compose_halcon(path, model);
+      break;
+  }
   std::string error;
   if (!write_file_atomic(path, text, &error)) throw Error(ErrorCode::kIo, error);
 }

@@ -1,32 +1,46 @@
-// Camera model files: OpenCV's calibration YAML / JSON (cv::FileStorage), the format
-// cv::undistort users read. Where further formats (ROS camera_info, mrcal, Kalibr, HALCON) go.
+// Camera-model files: the formats other vision tools read (docs/formats.md has each format's
+// field mapping and what its reader accepts).
+//
+//   opencv  OpenCV's calibration YAML / JSON / XML (cv::FileStorage), the format cv::undistort
+//           users read; the only one that also holds the uncertainty (std, covariance, expected
+//           error) and the session's outcome (opencv_storage.cpp)
+//   ros     ROS camera_info YAML as camera_calibration writes it (ros_camera_info.cpp)
+//   mrcal   mrcal's .cameramodel, a Python literal (mrcal_cameramodel.cpp)
+//   kalibr  Kalibr's camchain YAML, cam0 pinhole-radtan (kalibr_camchain.cpp)
+//   halcon  HALCON's area_scan_polynomial camera parameters, a fit in either direction
+//           (halcon_campar.cpp)
+//
+// Writing: the format is named, or follows the extension (.cameramodel: mrcal; .yml, .yaml,
+// .json, .xml: OpenCV). The file is composed in memory and written with write_file_atomic: an
+// error (a model the format cannot hold, a full disk) leaves the previous file as it was.
 //
 // Reading is strict and bounded: a model file comes from outside (evaluate --result,
 // sim://?model=FILE, the C ABI), so read_camera_model
 //  - opens it without blocking and refuses what is not a regular file (a FIFO, a device, a
 //    directory) and files larger than kMaxModelFileBytes (1 MiB);
-//  - decides the format by content, as OpenCV does ("%YAML" first: YAML; '{' first: JSON; XML
-//    is not read), and before OpenCV parses anything refuses nesting deeper than
-//    kMaxModelFileDepth (64) levels (OpenCV's recursive parser overflows the stack on a few
-//    thousand) and YAML beyond what OpenCV writes (one document, plain keys, no tabs);
-//  - accepts only known top-level keys, each once: posecal's (those write_camera_model writes,
-//    and the extras.strings keys target, camera_uri, camera_id, converged; a caller passing
-//    another key must add it to the reader) and those of OpenCV's calibration sample
-//    (samples/cpp/calibration.cpp), so OpenCV's files load;
-//  - needs camera_matrix (3x3, last row 0 0 1, no skew) and distortion_coefficients as OpenCV
-//    matrices of dt d or f, image_width and image_height (integers, at most
-//    CameraModel::kMaxImageSide per side and kMaxImagePixels in all); lens_model, if present,
-//    names a model of the lens table (core/lens/lens_models.hpp) matching the coefficients;
-//  - completeness: a file posecal wrote has lens_model, and posecal ends its files with
-//    `posecal_file_end: 1` (kModelFileEndKey). A file with lens_model whose last key is not
-//    that is refused as truncated (files posecal wrote before this rule must be saved again or
-//    get the line appended). Other files must parse completely and have the required keys.
+//  - decides the format by extension (.cameramodel: mrcal) and otherwise by the first line that
+//    is not blank or a '#' comment: "%YAML:" OpenCV YAML; '<' OpenCV XML; '{' OpenCV JSON, or
+//    mrcal when the first key is mrcal's; "ParGroup:" HALCON; other YAML: Kalibr when it starts
+//    with cam0, else ROS;
+//  - checks the text before any parser sees it: nesting at most kMaxModelFileDepth (64) levels,
+//    only the subset of the syntax the format's writers produce (for OpenCV's own parsers, which
+//    overflow the stack or loop forever on some inputs: no DOCTYPE or entities in XML, one YAML
+//    document, ...);
+//  - accepts only the format's known keys, each once, needs the keys that carry the model, and
+//    checks types, sizes (integers, at most CameraModel::kMaxImageSide per side and
+//    kMaxImagePixels in all) and the lens model (one of the lens table, core/lens/lens_models.hpp);
+//  - refuses a file cut short: posecal's OpenCV files end with `posecal_file_end: 1`
+//    (kModelFileEndKey; a file with lens_model whose last key is not that is refused as truncated),
+//    mrcal's and JSON's closing brace and XML's closing tag must be there, and ROS and Kalibr need
+//    every field that ends their files.
 // Errors are Error(kIo) when the file cannot be opened or read, else Error(kInvalidArgument);
 // both name the file and the key or limit.
 #pragma once
 
 #include <cstddef>
+#include <optional>
 #include <string>
+#include <string_view>
 #include <utility>
 #include <vector>
 
@@ -38,21 +52,56 @@ inline constexpr size_t kMaxModelFileBytes = size_t{1} << 20;
 inline constexpr int kMaxModelFileDepth = 64;
 inline constexpr const char* kModelFileEndKey = "posecal_file_end";
 
-// Reads an OpenCV calibration YAML/JSON file (camera_matrix, distortion_coefficients,
-// image_width, image_height), strictly (above). Throws Error(kIo / kInvalidArgument) naming the
-// file and field.
-CameraModel read_camera_model(const std::string& path);
+enum class ModelFormat { kOpenCV, kRos, kMrcal, kKalibr, kHalcon };
 
-// Extra fields written along with the model.
+// "opencv", "ros", "mrcal", "kalibr", "halcon".
+const char* model_format_name(ModelFormat format);
+std::optional<ModelFormat> model_format_from_name(std::string_view name);
+// Every format, in the order above.
+const std::vector<ModelFormat>& model_formats();
+// By extension: .cameramodel: mrcal; .yml, .yaml, .json, .xml: OpenCV; otherwise none.
+std::optional<ModelFormat> model_format_from_path(const std::string& path);
+// The extension a file of the format gets when only the format is chosen (the station's
+// per-camera files): ".yml", ".yaml", ".cameramodel", ".yaml", ".dat".
+const char* model_format_extension(ModelFormat format);
+
+// What a file holds besides the model. Written where the format has a place for it (OpenCV:
+// everything; ROS: camera_id as camera_name; the others: the model only).
 struct CalibrationFileExtras {
   int nr_of_frames = -1;               // omitted if < 0
   double avg_reprojection_error = -1;  // omitted if < 0
   std::vector<double> param_std;       // per-parameter standard deviations (omitted if empty)
-  std::vector<std::pair<std::string, std::string>> strings;  // free-form text fields
+  // The intrinsics covariance (scaled by the residual variance, as the result JSON's
+  // "covariance"), num_params x num_params row-major; omitted if empty.
+  std::vector<double> covariance;
+  double expected_error_px = -1;  // the expected projection error, RMS px; omitted if < 0
+  std::optional<bool> converged;  // the session's outcome; omitted if unset
+  std::optional<bool> interrupted;
+  // Free-form text fields (OpenCV: target, camera_uri, camera_id; other keys must be added to
+  // the reader's known keys).
+  std::vector<std::pair<std::string, std::string>> strings;
 };
-// Writes OpenCV YAML (".yml"/".yaml") or JSON (".json") in cv::FileStorage format, ending with
-// kModelFileEndKey: 1. extras.strings keys must be known to read_camera_model (above).
+
+// A file as read: its format, the model and the extras the format holds (OpenCV's file: all of
+// the above that are present; other formats: none).
+struct ModelFile {
+  ModelFormat format = ModelFormat::kOpenCV;
+  CameraModel model;
+  CalibrationFileExtras extras;
+};
+
+// Reads a camera-model file of any format, strictly (above). Throws Error(kIo /
+// kInvalidArgument) naming the file and field.
+ModelFile read_model_file(const std::string& path);
+CameraModel read_camera_model(const std::string& path);
+
+// Writes the model in `format` (none: by the extension, Error(kInvalidArgument) if it names no
+// format). Error(kInvalidArgument) naming the file, the format and the model if the format
+// cannot hold the model (Kalibr's radtan has no k3; HALCON's polynomial fits it worse than its
+// limit), or if the extension is another format's (.cameramodel is mrcal's; .json and .xml
+// OpenCV's; .yml and .yaml OpenCV's, ROS' or Kalibr's); nothing is written then.
 void write_camera_model(const std::string& path, const CameraModel& model,
-                        const CalibrationFileExtras& extras = {});
+                        const CalibrationFileExtras& extras = {},
+                        std::optional<ModelFormat> format = std::nullopt);
 
 }  // namespace posecal

@@ -97,6 +97,33 @@ void check_output_file(const std::string& path, const std::vector<std::string>& 
   if (!check_output_path(path, &error)) throw Failure{POSECAL_E_IO, error};
 }
 
+const std::vector<std::string>& result_formats() {
+  static const std::vector<std::string> formats = {"opencv", "ros", "mrcal", "kalibr", "halcon"};
+  return formats;
+}
+
+std::vector<std::string> result_extensions(const std::string& format) {
+  if (format.empty()) return {".yml", ".yaml", ".json", ".xml", ".cameramodel"};
+  if (format == "opencv") return {".yml", ".yaml", ".json", ".xml"};
+  if (format == "mrcal") return {".cameramodel"};
+  if (format == "halcon") return {".dat", ".cal"};
+  return {".yaml", ".yml"};  // ros, kalibr: YAML
+}
+
+void add_format_option(CLI::App* cmd, std::string* format) {
+  std::string names;
+  for (const auto& f : result_formats()) names += (names.empty() ? "" : "|") + f;
+  cmd->add_option("--format", *format,
+                  "the result file's format (default: by --out's extension: .cameramodel mrcal, "
+                  "else opencv)")
+      ->type_name(names)
+      ->check(CLI::IsMember(result_formats()));
+}
+
+const char* format_arg(const std::string& format) {
+  return format.empty() ? nullptr : format.c_str();
+}
+
 void write_text_file(const std::string& path, const std::string& text) {
   std::string error;
   if (!write_file_atomic(path, text, &error)) throw Failure{POSECAL_E_IO, error};

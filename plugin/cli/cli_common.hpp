@@ -97,6 +97,18 @@ void check_output_file(const std::string& path, const std::vector<std::string>& 
 // naming the cause; the previous file is kept on failure.
 void write_text_file(const std::string& path, const std::string& text);
 
+// ---- Result files (--out FILE, --format NAME) ----
+// The formats posecal_session_save_as writes: opencv, ros, mrcal, kalibr, halcon
+// (docs/formats.md).
+const std::vector<std::string>& result_formats();
+// The extensions a result file may have: by extension when `format` is empty (.yml, .yaml, .json,
+// .xml, .cameramodel), else those of the format (the first is the one the station uses).
+std::vector<std::string> result_extensions(const std::string& format);
+// Adds --format to a command that writes a result (an unknown name is a usage error naming it).
+void add_format_option(CLI::App* cmd, std::string* format);
+// The ABI's format argument: NULL for "" (by the file's extension).
+const char* format_arg(const std::string& format);
+
 // Flushes and closes stdout as coreutils' close_stdout does; false (with a message on stderr)
 // if anything written to it was lost (a full disk, a closed pipe, /dev/full).
 bool close_stdout();

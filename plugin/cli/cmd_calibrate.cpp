@@ -17,7 +17,7 @@ namespace posecal::cli {
 namespace {
 
 struct CalibrateOptions {
-  std::string images, camera, out;
+  std::string images, camera, out, format;
   bool json = false;
   // --images
   bool fix_principal_point = false, fix_aspect_ratio = false, zero_tangential = false;
@@ -60,7 +60,9 @@ int calibrate_images(const CalibrateOptions& o) {
                                  &cal));
   const std::unique_ptr<posecal_calibration, void (*)(posecal_calibration*)> guard(
       cal, posecal_calibration_destroy);
-  if (!o.out.empty()) check(posecal_calibration_save(cal, o.out.c_str()));
+  if (!o.out.empty()) {
+    check(posecal_calibration_save_as(cal, o.out.c_str(), format_arg(o.format)));
+  }
   const Json j = Json::parse(
       fetch_json([&](char* b, size_t* s) { return posecal_calibration_json(cal, b, s); }));
   if (o.json) {
@@ -140,7 +142,7 @@ int report_live(posecal_session* s, const CalibrateOptions& o, bool robot, const
                       (run.stopped_by_user ? " (window closed)" : "")};
   }
   const Json result = fetch_result(s);
-  if (!o.out.empty()) check(posecal_session_save(s, o.out.c_str()));
+  if (!o.out.empty()) check(posecal_session_save_as(s, o.out.c_str(), format_arg(o.format)));
   const Json j = summary(result, run.wall_ms);
   if (o.json || robot) {
     Json line = j;
@@ -177,7 +179,7 @@ int calibrate_camera(const CalibrateOptions& o) {
 }
 
 int run_calibrate(const CalibrateOptions& o) {
-  if (!o.out.empty()) check_output_file(o.out, {".yml", ".yaml", ".json"});
+  if (!o.out.empty()) check_output_file(o.out, result_extensions(o.format));
   if (!o.camera.empty()) return calibrate_camera(o);
   if (!o.images.empty()) return calibrate_images(o);
   throw UsageError{"calibrate needs --camera URI or --images DIR"};
@@ -234,8 +236,10 @@ Command add_calibrate(CLI::App* app) {
                             ->type_name("URI")
                             ->check(non_empty());
   images->excludes(camera);
-  cmd->add_option("--out", o->out, "write the calibration (.yml, .yaml or .json)")
+  cmd->add_option("--out", o->out,
+                  "write the calibration (.yml, .yaml, .json, .xml or .cameramodel)")
       ->type_name("FILE");
+  add_format_option(cmd, &o->format);
   add_json_flag(cmd, &o->json, "print JSON (--camera: one event per line, then the result)");
   add_images_options(cmd, o.get());
   add_camera_options(cmd, o.get());

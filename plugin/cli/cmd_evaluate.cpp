@@ -49,7 +49,7 @@ Command add_evaluate(CLI::App* app) {
   CLI::App* cmd = app->add_subcommand(
       "evaluate", "test-set error (eps_test; eps_gt for sim://) of an existing calibration file");
   cmd->footer(target_spec_help());
-  cmd->add_option("--result", o->result, "the calibration file (.yml, .yaml or .json)")
+  cmd->add_option("--result", o->result, "the calibration file (any format posecal writes, docs/formats.md)")
       ->type_name("FILE")
       ->required()
       ->check(non_empty());

@@ -14,7 +14,7 @@ namespace {
 
 struct SimulateOptions {
   int seed = 1;
-  std::string noise, blur, camera_model, out;
+  std::string noise, blur, camera_model, out, format;
   int max_frames = 5000;
   bool json = false, events = false;
   std::unique_ptr<SessionFlags> session;
@@ -72,7 +72,7 @@ void print_text_summary(const SimulateOptions& o, const Json& j, double wall_ms)
 }
 
 int run_simulate(const SimulateOptions& o) {
-  if (!o.out.empty()) check_output_file(o.out, {".yml", ".yaml", ".json"});
+  if (!o.out.empty()) check_output_file(o.out, result_extensions(o.format));
   const auto t0 = Clock::now();
   Context c;
   Session s(c.get(), sim_uri(o), o.session->config());
@@ -92,7 +92,9 @@ int run_simulate(const SimulateOptions& o) {
     if (interrupt_requested()) return interrupt_exit_code();
     throw Failure{POSECAL_E_STATE, "no calibration: fewer than two keyframes"};
   }
-  if (!o.out.empty()) check(posecal_session_save(s.get(), o.out.c_str()));
+  if (!o.out.empty()) {
+    check(posecal_session_save_as(s.get(), o.out.c_str(), format_arg(o.format)));
+  }
   Json j = summary(fetch_result(s.get()), wall_ms);
   if (o.json) j["expected_error_map"] = expected_error_map(s.get(), 16, 9);
   if (o.json) {
@@ -123,8 +125,10 @@ Command add_simulate(CLI::App* app) {
       ->type_name("PX");
   cmd->add_option("--max-frames", o->max_frames, "stop after this many frames (default: 5000)")
       ->check(in_range(1, 10000000));
-  cmd->add_option("--out", o->out, "write the calibration (.yml, .yaml or .json)")
+  cmd->add_option("--out", o->out,
+                  "write the calibration (.yml, .yaml, .json, .xml or .cameramodel)")
       ->type_name("FILE");
+  add_format_option(cmd, &o->format);
   add_json_flag(cmd, &o->json, "print the summary as one JSON object");
   cmd->add_flag("--events", o->events, "print the session's events as JSON lines on stderr");
   o->session = std::make_unique<SessionFlags>(cmd);

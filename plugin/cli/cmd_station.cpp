@@ -1,5 +1,6 @@
 // posecal station: several cameras calibrated concurrently (one thread each); one result file
 // per camera named by its identity, and DIR/summary.json.
+#include <algorithm>
 #include <cctype>
 #include <filesystem>
 #include <memory>
@@ -54,6 +55,16 @@ std::string sanitise_id(const std::string& id) {
   return out.empty() ? "camera" : out;
 }
 
+// --format: an OpenCV extension (yml, yaml, json, xml) or a format name (result_formats()).
+bool is_format_name(const std::string& format) {
+  const auto& names = result_formats();
+  return std::find(names.begin(), names.end(), format) != names.end();
+}
+
+std::string file_extension(const std::string& format) {
+  return is_format_name(format) ? result_extensions(format).front() : "." + format;
+}
+
 // The result file is named by the camera's identity; two cameras with one id get suffixes.
 std::string claim_file(StationShared* shared, const std::string& id) {
   std::string name = sanitise_id(id);
@@ -63,7 +74,7 @@ std::string claim_file(StationShared* shared, const std::string& id) {
     for (int i = 2; shared->names.count(name); ++i) name = base + "-" + std::to_string(i);
     shared->names.insert(name);
   }
-  return shared->options->out_dir + "/" + name + "." + shared->options->format;
+  return shared->options->out_dir + "/" + name + file_extension(shared->options->format);
 }
 
 void step_until_done(posecal_session* s, const StationOptions& o, const std::string& uri,
@@ -108,7 +119,9 @@ void calibrate_one(StationShared* shared, StationJob* job, Clock::time_point t0)
                                        why};
   }
   const std::string file = claim_file(shared, camera.value("id", ""));
-  check(posecal_session_save(s.get(), file.c_str()));
+  const std::string& format = shared->options->format;
+  check(posecal_session_save_as(s.get(), file.c_str(),
+                                is_format_name(format) ? format.c_str() : nullptr));
   const Json result = fetch_result(s.get());
   out["converged"] = result.value("converged", false);
   out["interrupted"] = result.value("interrupted", false);
@@ -266,8 +279,12 @@ Command add_station(CLI::App* app) {
       ->type_name("DIR")
       ->required()
       ->check(non_empty());
-  cmd->add_option("--format", o->format, "result file format (default: yml)")
-      ->check(CLI::IsMember({"yml", "yaml", "json"}));
+  std::vector<std::string> formats = {"yml", "yaml", "json", "xml"};
+  formats.insert(formats.end(), result_formats().begin(), result_formats().end());
+  cmd->add_option("--format", o->format,
+                  "result file format: an OpenCV file's extension or a format name (ros: .yaml, "
+                  "mrcal: .cameramodel, kalibr: .yaml, halcon: .dat; default: yml)")
+      ->check(CLI::IsMember(formats));
   cmd->add_option("--timeout-ms", o->timeout_ms,
                   "wait for a frame at most this long (default: 2000)")
       ->check(in_range(0, 600000));

@@ -2,21 +2,13 @@
 #include "abi_common.hpp"
 
 #include <cmath>
+#include <optional>
 
 #include "calib/expected_error.hpp"
 #include "common/error.hpp"
 #include "io/model_file.hpp"
 
 namespace posecal::abi {
-
-namespace {
-
-bool ends_with(const std::string& s, const std::string& suffix) {
-  return s.size() >= suffix.size() &&
-         s.compare(s.size() - suffix.size(), suffix.size(), suffix) == 0;
-}
-
-}  // namespace
 
 nlohmann::json device_json(const DeviceInfo& d) {
   return {{"uri", d.uri},
@@ -76,18 +68,32 @@ nlohmann::json calibration_json(const CalibrationResult& r) {
   return j;
 }
 
-void save_calibration(const std::string& path, const CalibrationResult& r,
-                      const std::vector<std::pair<std::string, std::string>>& extra_strings) {
-  if (!(ends_with(path, ".yml") || ends_with(path, ".yaml") || ends_with(path, ".json"))) {
-    throw Error(ErrorCode::kInvalidArgument,
-                "output file '" + path + "': use .yml, .yaml or .json");
+void save_calibration(const std::string& path, const CalibrationResult& r, const char* format,
+                      CalibrationFileExtras extras) {
+  std::optional<ModelFormat> f;
+  if (format != nullptr && *format != '\0') {
+    f = model_format_from_name(format);
+    if (!f) {
+      std::string names;
+      for (const ModelFormat m : model_formats()) {
+        names += std::string(names.empty() ? "" : ", ") + model_format_name(m);
+      }
+      throw Error(ErrorCode::kInvalidArgument,
+                  std::string("unknown format '") + format + "': use one of " + names);
+    }
   }
-  CalibrationFileExtras extras;
+  const int n = r.model.num_params();
   extras.nr_of_frames = static_cast<int>(r.poses.size());
   extras.avg_reprojection_error = r.rms_px;
   extras.param_std = r.std_scaled;
-  extras.strings = extra_strings;
-  write_camera_model(path, r.model, extras);
+  const Eigen::MatrixXd cov = r.covariance_scaled();
+  extras.covariance.clear();
+  for (int a = 0; a < n; ++a) {
+    for (int b = 0; b < n; ++b) extras.covariance.push_back(cov(a, b));
+  }
+  const double expected = expected_error(r).rms_px;
+  if (std::isfinite(expected)) extras.expected_error_px = expected;
+  write_camera_model(path, r.model, extras, f);
 }
 
 }  // namespace posecal::abi

@@ -8,6 +8,7 @@
 
 #include "calib/calibration.hpp"
 #include "device/camera.hpp"
+#include "io/model_file.hpp"
 
 namespace posecal::abi {
 
@@ -15,9 +16,13 @@ nlohmann::json device_json(const DeviceInfo& d);
 // Values, "std" (scaled by the residual variance: the honest sigma), "std_unit" (Sigma_p = I,
 // paper eq. 5), index of dispersion, "rms", per-frame RMS, intrinsics covariance (scaled).
 nlohmann::json calibration_json(const CalibrationResult& r);
-// OpenCV YAML (.yml/.yaml) or JSON (.json) with nr_of_frames, avg_reprojection_error and the
-// per-parameter standard deviations.
-void save_calibration(const std::string& path, const CalibrationResult& r,
-                      const std::vector<std::pair<std::string, std::string>>& extra_strings);
+// Writes the result as a camera-model file (io/model_file.hpp) in `format` (a format name; NULL
+// or "": by the extension), with the figures of the result: nr_of_frames,
+// avg_reprojection_error, the per-parameter standard deviations, the intrinsics covariance and
+// the expected error (where the format holds them), and the caller's strings and flags in
+// `extras`. Error(kInvalidArgument) for an unknown format or a model the format cannot hold;
+// nothing is written then.
+void save_calibration(const std::string& path, const CalibrationResult& r, const char* format,
+                      CalibrationFileExtras extras);
 
 }  // namespace posecal::abi

@@ -268,6 +268,26 @@ const CalibrationResult& require_result(posecal_session* s) {
 
 }  // namespace
 
+namespace {
+
+void save_session(posecal_session* session, const char* path, const char* format,
+                  const char* function) {
+  require(session, "session");
+  require(path, "path");
+  check_not_in_callback(session, function);
+  const CalibrationResult& r = require_result(session);
+  const CalibrationEngine& eng = session->session->engine();
+  CalibrationFileExtras extras;
+  extras.strings = {{"camera_uri", session->camera.uri},
+                    {"camera_id", session->camera.id},
+                    {"target", eng.options().board.to_string()}};
+  extras.converged = eng.converged();
+  extras.interrupted = was_interrupted(session);
+  abi::save_calibration(path, r, format, extras);
+}
+
+}  // namespace
+
 extern "C" {
 
 POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char* camera_uri,
@@ -551,17 +571,15 @@ POSECAL_API posecal_status posecal_session_result(posecal_session* session, char
 POSECAL_API posecal_status posecal_session_save(posecal_session* session,
                                                 const char* path) noexcept {
   return guarded(__func__, [&] {
-    require(session, "session");
-    require(path, "path");
-    check_not_in_callback(session, "posecal_session_save");
-    const CalibrationResult& r = require_result(session);
-    const CalibrationEngine& eng = session->session->engine();
-    abi::save_calibration(path, r,
-                          {{"camera_uri", session->camera.uri},
-                           {"camera_id", session->camera.id},
-                           {"target", eng.options().board.to_string()},
-                           {"converged", eng.converged() ? "true" : "false"},
-                           {"interrupted", was_interrupted(session) ? "true" : "false"}});
+    save_session(session, path, nullptr, "posecal_session_save");
+    return POSECAL_OK;
+  });
+}
+
+POSECAL_API posecal_status posecal_session_save_as(posecal_session* session, const char* path,
+                                                   const char* format) noexcept {
+  return guarded(__func__, [&] {
+    save_session(session, path, format, "posecal_session_save_as");
     return POSECAL_OK;
   });
 }

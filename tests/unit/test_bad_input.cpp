@@ -187,7 +187,9 @@ TEST(BadInput, ModelFileStrictFields) {
                  ErrorCode::kInvalidArgument, {"camera_matrix", "not a number"});
   expect_refused(
       write_file("xml.yml", "<?xml version=\"1.0\"?>\n<opencv_storage>\n</opencv_storage>\n"),
-      ErrorCode::kInvalidArgument, {"neither OpenCV YAML"});
+      ErrorCode::kInvalidArgument, {"xml.yml"});
+  expect_refused(write_file("text.yml", "camera_matrix\n"), ErrorCode::kInvalidArgument,
+                 {"text.yml", "line 1"});
   expect_refused(write_file("two.yml", yaml(body + "---\n" + body)), ErrorCode::kInvalidArgument,
                  {"one document"});
   expect_refused(write_file("tab.yml", yaml(replaced(body, "image_width: ", "image_width:\t"))),
@@ -230,9 +232,11 @@ TEST(BadInput, TruncatedPosecalFilesAreRefused) {
   extras.param_std = std::vector<double>(model.num_params(), 0.5);
   extras.strings = {{"camera_uri", "sim://?seed=1"},
                     {"camera_id", "sim-1"},
-                    {"target", "charuco:9x6:0.028:0.0182:DICT_4X4_50"},
-                    {"converged", "true"}};
-  for (const std::string ext : {".yml", ".json"}) {
+                    {"target", "charuco:9x6:0.028:0.0182:DICT_4X4_50"}};
+  extras.converged = true;
+  extras.covariance = std::vector<double>(model.num_params() * model.num_params(), 0.01);
+  extras.expected_error_px = 0.2;
+  for (const std::string ext : {".yml", ".json", ".xml"}) {
     const std::string path = temp_path("own" + ext);
     write_camera_model(path, model, extras);
     EXPECT_DOUBLE_EQ(read_camera_model(path).fy(), 1001.0) << ext;
@@ -246,7 +250,7 @@ TEST(BadInput, TruncatedPosecalFilesAreRefused) {
     ASSERT_NE(after_d, std::string::npos);
     // (YAML parses without the rest; JSON lacks its closing brace.)
     expect_refused(write_file("cut" + ext, full.substr(0, after_d)), ErrorCode::kInvalidArgument,
-                   {ext == ".yml" ? "truncated" : "cut.json"});
+                   {ext == ".yml" ? "truncated" : "cut" + ext});
     for (size_t n = 0; n <= one; ++n) {
       const std::string cut = write_file("prefix" + ext, full.substr(0, n));
       try {
