@@ -2,9 +2,11 @@
 # plugin_install: installs the build into a temporary prefix and uses it as a consumer would:
 # find_package(posecal) + posecal::posecal, pkg-config, the installed CLI and Python package.
 #
-# usage: install_test.sh BUILD_DIR SOURCE_DIR WORK_DIR
+# usage: install_test.sh BUILD_DIR SOURCE_DIR WORK_DIR PYTHON PYTHON_DIR
+#   PYTHON_DIR: where the build installs the Python package, relative to the prefix
+#   (plugin/CMakeLists.txt: POSECAL_PYTHON_INSTALL_DIR); PYTHON: the interpreter it is for.
 set -euo pipefail
-build=$1 src=$2 work=$3
+build=$1 src=$2 work=$3 python=${4:-python3} pydir=${5:-lib/python3/dist-packages}
 prefix=$work/prefix
 rm -rf "$work"
 mkdir -p "$work"
@@ -20,8 +22,8 @@ done
 for f in "$libdir/libposecal.so" "$libdir/libposecal.so.1" include/posecal.h bin/posecal \
          "$libdir/pkgconfig/posecal.pc" "$libdir/cmake/posecal/posecalConfig.cmake" \
          "$libdir/cmake/posecal/posecalConfigVersion.cmake" \
-         lib/python3/dist-packages/posecal/__init__.py \
-         lib/python3/dist-packages/posecal/_install_paths.py; do
+         "$pydir/posecal/__init__.py" "$pydir/posecal/_install_paths.py" \
+         "$pydir/posecal/py.typed"; do
   [ -e "$prefix/$f" ] || { echo "missing in the prefix: $f"; exit 1; }
 done
 [ -L "$prefix/$libdir/libposecal.so" ] && [ -L "$prefix/$libdir/libposecal.so.1" ] ||
@@ -57,13 +59,23 @@ used=$(ldd "$prefix/bin/posecal" | awk '/libposecal.so.1/ {print $3}')
   { echo "the installed CLI uses $used, not the installed library"; exit 1; }
 
 echo "== installed Python package (library found through the install prefix)"
-PYTHONPATH=$prefix/lib/python3/dist-packages python3 -c "
+# For the default prefix /usr/local, the directory is one a system interpreter searches (Debian
+# 12: /usr/local/lib/python3.11/dist-packages, not lib/python3/dist-packages); an interpreter
+# that searches nothing under /usr/local (pyenv's) has no say.
+"$python" -c "
+import site, sys
+local = [d for d in site.getsitepackages() if d.startswith('/usr/local/')]
+sys.exit(bool(local) and '/usr/local/$pydir' not in local)" ||
+  { echo "$python does not look for packages in /usr/local/$pydir"; exit 1; }
+PYTHONPATH=$prefix/$pydir "$python" -c "
 import os, sys, posecal
+assert os.path.realpath(posecal.__file__).startswith(os.path.realpath('$prefix')), posecal.__file__
 lib = os.path.realpath(posecal.library_path)
 assert lib.startswith(os.path.realpath('$prefix')), lib
 assert posecal.abi_version() == 1
 with posecal.Context(backends=['sim']) as ctx, ctx.open('sim://?seed=3') as s:
     assert s.step() and s.status['frames'] == 1
-print('python: posecal', posecal.version(), 'from', lib)
+    assert s.last_frame().shape == (720, 1280, 3)
+print('python: posecal', posecal.__version__, 'library', posecal.version(), 'from', lib)
 "
 echo "install test ok"

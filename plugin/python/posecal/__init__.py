@@ -1,32 +1,53 @@
 """posecal: camera calibration with efficient pose selection, from Python.
 
-A pure-Python (ctypes) binding of libposecal.so's C ABI (posecal.h); no compiled extension and
-no numpy. Typical use::
+A pure-Python (ctypes) binding of libposecal.so's C ABI (posecal.h), no compiled extension;
+images are numpy arrays. Typical use::
 
     import posecal
 
     with posecal.Context() as ctx, ctx.open("sim://?seed=1") as session:
         for event in session:              # steps the camera, yields the session's events
             print(event.kind, event.data)
-        print(session.result["converged"], session.result["fx"])
+        result = session.result            # a dict, plus numpy arrays result.K and result.D
+        print(result["converged"], result.K, result.D)
         session.save("camera.yml")
+
+A host with its own camera feeds its frames, H x W (grey) or H x W x 3 (BGR) uint8 arrays such
+as cv2.VideoCapture's, to an "external" session: `session.feed(frame)`; `last_frame()` and
+`render_overlay()` return such arrays.
 
 Threads: a Context may be shared by threads; each Session is used by one thread at a time
 (different sessions on different threads run concurrently: the library releases the GIL while
 it works). Events are queued by the library's callback on the thread that steps the session and
 are read from the queue by `events()`, iteration or `pending_events()`.
 
-Errors raise PosecalError subclasses carrying `status`, `status_name` and `message`.
+Errors raise PosecalError subclasses carrying `status`, `status_name` and `message`; each
+also derives from the matching builtin (errors.py): InvalidArgumentError is a ValueError,
+TimeoutError the builtin TimeoutError, FileError an OSError, ...
+
+`__version__` is this package's version (pyproject.toml reads it from _version.py); `version()`
+is the loaded library's (posecal_version()). They are equal when both come from one build; the
+binding works with any library of ABI version `_native.ABI_VERSION`.
 """
+
+from __future__ import annotations
 
 import collections
 import ctypes
 import json
 import os
 import threading
+import warnings
 import weakref
+from typing import (Any, Callable, Deque, Dict, Iterable, Iterator, List, NamedTuple, Optional,
+                    Tuple, TypeVar, Union, overload)
+
+import numpy as np
 
 from . import _native
+from ._image import Buffer, Frame, PixelFormat, from_array, host_image, new_frame
+from ._result import Result
+from ._version import __version__
 from .errors import (
     BufferTooSmallError,
     DegenerateError,
@@ -34,6 +55,7 @@ from .errors import (
     FileError,
     InternalError,
     InvalidArgumentError,
+    InvalidTypeError,
     NotFoundError,
     PosecalError,
     StateError,
@@ -43,14 +65,22 @@ from .errors import (
 )
 from . import errors as _errors
 
+#: A file name: str, bytes or os.PathLike.
+PathArg = Union[str, bytes, "os.PathLike[str]"]
+
+_H = TypeVar("_H", bound="_Handle")
+
 __all__ = [
     "Context",
     "Session",
     "Calibration",
     "Event",
     "PixelFormat",
+    "Result",
+    "Frame",
     "PosecalError",
     "InvalidArgumentError",
+    "InvalidTypeError",
     "NotFoundError",
     "BufferTooSmallError",
     "TimeoutError",
@@ -62,6 +92,7 @@ __all__ = [
     "UnsupportedError",
     "abi_version",
     "version",
+    "__version__",
     "library_path",
     "write_target",
 ]
@@ -70,29 +101,19 @@ _lib = _native.lib
 library_path = _native.library_path
 
 
-class PixelFormat:
-    """posecal_pixel_format."""
-
-    MONO8 = 0
-    BGR8 = 1
-    RGB8 = 2
-
-    CHANNELS = {MONO8: 1, BGR8: 3, RGB8: 3}
-
-
-def _error(status):
+def _error(status: int) -> PosecalError:
     """The exception for a failed call; must run before any other posecal call on this thread
     (the message is per thread and reset by the next successful call)."""
     message = (_lib.posecal_last_error() or b"").decode("utf-8", "replace")
     return error_for(status, message)
 
 
-def _check(status):
+def _check(status: int) -> None:
     if status != _errors.OK:
         raise _error(status)
 
 
-def _enc(text, name):
+def _enc(text: Optional[PathArg], name: str) -> Optional[bytes]:
     if text is None:
         return None
     if isinstance(text, os.PathLike):
@@ -100,18 +121,18 @@ def _enc(text, name):
     if isinstance(text, bytes):
         return text
     if not isinstance(text, str):
-        raise InvalidArgumentError(_errors.E_INVALID_ARGUMENT, "%s must be a string" % name)
+        raise InvalidTypeError(_errors.E_INVALID_ARGUMENT, "%s must be a string" % name)
     return text.encode("utf-8")
 
 
-def _options(options):
+def _options(options: Optional[Dict[str, Any]]) -> Optional[bytes]:
     """A dict of options as the JSON object the C ABI takes (None: defaults)."""
     if not options:
         return None
     return json.dumps(options).encode("utf-8")
 
 
-def _fetch_json(call):
+def _fetch_json(call: Callable[[Any, Any], int]) -> Any:
     """Calls a JSON-returning function with the size protocol and parses the result."""
     size = ctypes.c_size_t(65536)
     buf = ctypes.create_string_buffer(size.value)
@@ -123,71 +144,30 @@ def _fetch_json(call):
     return json.loads(buf.value.decode("utf-8"))
 
 
-def abi_version():
+def abi_version() -> int:
     """POSECAL_ABI_VERSION of the loaded library."""
     return int(_lib.posecal_abi_version())
 
 
-def version():
-    """Library version, e.g. "0.1.0"."""
+def version() -> str:
+    """The loaded library's version (posecal_version()), e.g. "0.1.0"; `__version__` is the
+    package's."""
     return _lib.posecal_version().decode("utf-8")
 
 
-def write_target(path, target=None, dpi=300.0, margin_m=0.01):
+def write_target(path: PathArg, target: Optional[str] = None, dpi: float = 300.0,
+                 margin_m: float = 0.01) -> None:
     """Writes the printable target at exact scale (.pdf vector, .png at `dpi`)."""
     _check(_lib.posecal_write_target(_enc(target, "target"), _enc(path, "path"), float(dpi),
                                      float(margin_m)))
 
 
-def _image_view(data, width, height, stride, fmt, writable):
-    """A posecal_image over a Python buffer, after checking that the buffer is large enough
-    (the library cannot check a raw pointer). Returns (image, keepalive)."""
-    for name, v in (("width", width), ("height", height)):
-        if not isinstance(v, int) or not 1 <= v <= 65535:
-            raise InvalidArgumentError(_errors.E_INVALID_ARGUMENT,
-                                       "%s must be an integer in 1..65535" % name)
-    if fmt not in PixelFormat.CHANNELS:
-        raise InvalidArgumentError(_errors.E_INVALID_ARGUMENT, "unknown pixel format %r" % (fmt,))
-    row = width * PixelFormat.CHANNELS[fmt]
-    if stride is None:
-        stride = row
-    if not isinstance(stride, int) or not row <= stride <= 0x7FFFFFFF:
-        raise InvalidArgumentError(_errors.E_INVALID_ARGUMENT,
-                                   "stride must be an integer >= width x channels (%d)" % row)
-    needed = stride * (height - 1) + row
-    try:
-        view = memoryview(data)
-    except TypeError:
-        raise InvalidArgumentError(
-            _errors.E_INVALID_ARGUMENT,
-            "image data must be bytes, bytearray or another buffer, not %s" % type(data).__name__,
-        ) from None
-    if view.nbytes < needed:
-        raise InvalidArgumentError(
-            _errors.E_INVALID_ARGUMENT,
-            "buffer has %d bytes, a %dx%d image with stride %d needs %d"
-            % (view.nbytes, width, height, stride, needed),
-        )
-    if isinstance(data, bytes) and not writable:
-        keep = data
-        address = ctypes.cast(ctypes.c_char_p(data), ctypes.c_void_p).value
-    elif not view.readonly and view.c_contiguous:
-        flat = view if (view.ndim == 1 and view.format == "B") else view.cast("B")
-        keep = (ctypes.c_char * flat.nbytes).from_buffer(flat)
-        address = ctypes.addressof(keep)
-    elif writable:
-        raise InvalidArgumentError(_errors.E_INVALID_ARGUMENT,
-                                   "the image buffer must be writable (bytearray, memoryview)")
-    else:
-        keep = bytes(view)  # a read-only or strided buffer: one copy
-        address = ctypes.cast(ctypes.c_char_p(keep), ctypes.c_void_p).value
-    img = _native.Image(ctypes.sizeof(_native.Image), width, height, stride, fmt, address)
-    return img, keep
+class Event(NamedTuple):
+    """A session event: `kind` ("captured", "state_changed", ...) and `data`, the JSON payload
+    as a dict (keys "keyframes", "frames", "message", ...)."""
 
-
-Event = collections.namedtuple("Event", ["kind", "data"])
-Event.__doc__ = """A session event: `kind` ("captured", "state_changed", ...) and `data`, the
-JSON payload as a dict (keys "keyframes", "frames", "message", ...)."""
+    kind: str
+    data: Dict[str, Any]
 
 
 class _Handle:
@@ -195,55 +175,60 @@ class _Handle:
     calls on a closed object raise StateError."""
 
     _what = "object"
-    _h = None
+    _h: Optional[ctypes.c_void_p] = None
 
-    def close(self):
+    def close(self) -> None:
         raise NotImplementedError
 
-    def __del__(self):
+    def __del__(self) -> None:
         try:
             self.close()
         except Exception:  # interpreter shutdown: the library may be gone already
             pass
 
-    def __enter__(self):
+    def __enter__(self: _H) -> _H:
         return self
 
-    def __exit__(self, *exc):
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
     @property
-    def closed(self):
+    def closed(self) -> bool:
         return not self._h
 
-    def _handle(self):
+    def _handle(self) -> ctypes.c_void_p:
         if not self._h:
             raise StateError(_errors.E_STATE, "the %s is closed" % self._what)
         return self._h
 
 
 class Calibration(_Handle):
-    """The result of Context.calibrate_images(): `.result` (dict) and `.save(path)`."""
+    """The result of Context.calibrate_images(): `.result` and `.save(path)`."""
 
     _what = "calibration"
 
-    def __init__(self, handle):
+    def __init__(self, handle: ctypes.c_void_p) -> None:
         self._h = handle
 
-    def close(self):
+    def close(self) -> None:
         if self._h:
             _lib.posecal_calibration_destroy(self._h)
             self._h = None
 
-
-
     @property
-    def result(self):
+    def result(self) -> Result:
+        """The calibration: a dict of posecal_calibration_json's object, with `K`, `D` and
+        `covariance` as numpy arrays (Result)."""
         h = self._handle()
-        return _fetch_json(lambda b, n: _lib.posecal_calibration_json(h, b, n))
+        return Result(_fetch_json(lambda b, n: _lib.posecal_calibration_json(h, b, n)))
 
-    def save(self, path):
-        _check(_lib.posecal_calibration_save(self._handle(), _enc(path, "path")))
+    def save(self, path: PathArg, format: Optional[str] = None) -> None:
+        """Saves the calibration: by the extension (.yml/.yaml/.json/.xml OpenCV, .cameramodel
+        mrcal), or in ``format`` ("opencv", "ros", "mrcal", "kalibr", "halcon";
+        docs/formats.md).
+        InvalidArgumentError, nothing written, for a model the format cannot hold."""
+        _check(_lib.posecal_calibration_save_as(self._handle(), _enc(path, "path"),
+                                                _enc(format, "format")))
 
 
 class Context(_Handle):
@@ -254,18 +239,18 @@ class Context(_Handle):
 
     _what = "context"
 
-    def __init__(self, backends=None):
+    def __init__(self, backends: Optional[Iterable[str]] = None) -> None:
         self._h = None
         # Open sessions (weakly: a forgotten session is still closed when it is collected),
         # closed before the context.
-        self._sessions = weakref.WeakSet()
+        self._sessions: "weakref.WeakSet[Session]" = weakref.WeakSet()
         self._sessions_lock = threading.Lock()
         opts = None if backends is None else {"backends": list(backends)}
         h = ctypes.c_void_p()
         _check(_lib.posecal_context_create(_options(opts), ctypes.byref(h)))
         self._h = h
 
-    def close(self):
+    def close(self) -> None:
         """Closes every session still open on the context, then the context."""
         if self._h:
             with self._sessions_lock:
@@ -275,36 +260,35 @@ class Context(_Handle):
             _lib.posecal_context_destroy(self._h)
             self._h = None
 
-
-
-
-    def cameras(self):
+    def cameras(self) -> List[Dict[str, Any]]:
         """Cameras of every enabled backend (list of dicts: uri, backend, id, vendor, ...)."""
         h = self._handle()
         return _fetch_json(lambda b, n: _lib.posecal_list_cameras(h, b, n))
 
-    def features(self, uri):
+    def features(self, uri: str) -> List[Dict[str, Any]]:
         """The camera's settings: list of dicts (name, type, value, access, unit, range,
         options)."""
         h = self._handle()
         u = _enc(uri, "uri")
         return _fetch_json(lambda b, n: _lib.posecal_camera_features(h, u, b, n))
 
-    def grab(self, uri, count, out_dir, timeout_ms=10000):
+    def grab(self, uri: str, count: int, out_dir: PathArg,
+             timeout_ms: int = 10000) -> Dict[str, Any]:
         """Saves `count` frames as PNG files in out_dir; returns the list of files and more."""
         h = self._handle()
         u, d = _enc(uri, "uri"), _enc(out_dir, "out_dir")
         return _fetch_json(
             lambda b, n: _lib.posecal_camera_grab(h, u, int(count), d, int(timeout_ms), b, n))
 
-    def evaluate(self, result_path, uri, **options):
+    def evaluate(self, result_path: PathArg, uri: str, **options: Any) -> Dict[str, Any]:
         """Test-set error of a calibration file on a camera (eps_test; eps_gt for sim://).
         options: target, frames, min_corners, timeout_ms."""
         h = self._handle()
         r, u, o = _enc(result_path, "result_path"), _enc(uri, "uri"), _options(options)
         return _fetch_json(lambda b, n: _lib.posecal_evaluate(h, r, u, o, b, n))
 
-    def calibrate_images(self, images_dir, target=None, **options):
+    def calibrate_images(self, images_dir: PathArg, target: Optional[str] = None,
+                         **options: Any) -> Calibration:
         """Offline calibration of a folder of images; returns a Calibration.
         options: fix_principal_point, fix_aspect_ratio, zero_tangential, fixed, min_corners."""
         h = ctypes.c_void_p()
@@ -313,7 +297,7 @@ class Context(_Handle):
                                              ctypes.byref(h)))
         return Calibration(h)
 
-    def open(self, uri, **config):
+    def open(self, uri: str, **config: Any) -> Session:
         """Opens a calibration session on a camera. config: the keys of posecal_session_open
         (core/session/session_keys.def): method, target, operator, convergence_threshold, max_keyframes,
         jaccard_threshold, still_motion_px, constraint_factor, target_timeout_frames,
@@ -323,8 +307,8 @@ class Context(_Handle):
         return Session(self, uri, **config)
 
 
-def _queueing_callback(queue):
-    def on_event(_user, kind, payload):
+def _queueing_callback(queue: Deque[Event]) -> Callable[[Any, bytes, bytes], None]:
+    def on_event(_user: Any, kind: bytes, payload: bytes) -> None:
         try:
             data = json.loads(payload.decode("utf-8"))
         except ValueError:
@@ -342,10 +326,10 @@ class Session(_Handle):
 
     _what = "session"
 
-    def __init__(self, context, uri, **config):
+    def __init__(self, context: Context, uri: str, **config: Any) -> None:
         self._h = None
         self._context = context
-        self._events = collections.deque()
+        self._events: Deque[Event] = collections.deque()
         self._finished = False
         h = ctypes.c_void_p()
         _check(_lib.posecal_session_open(context._handle(), _enc(uri, "uri"), _options(config),
@@ -358,18 +342,15 @@ class Session(_Handle):
         self._callback = _native.EVENT_FN(_queueing_callback(self._events))
         _check(_lib.posecal_session_set_callback(self._h, self._callback, None))
 
-    def close(self):
+    def close(self) -> None:
         if self._h:
             _lib.posecal_session_close(self._h)
             self._h = None
             with self._context._sessions_lock:
                 self._context._sessions.discard(self)
 
-
-
-
     # ---- frames --------------------------------------------------------------------------
-    def step(self, timeout_ms=1000):
+    def step(self, timeout_ms: int = 1000) -> bool:
         """Processes one frame of the camera. Returns True if a frame was processed, False once
         the calibration has finished. Raises TimeoutError (no frame in time), DeviceError
         (camera disconnected: keep stepping), NotFoundError (images:// ended)."""
@@ -381,36 +362,87 @@ class Session(_Handle):
             return False
         raise error
 
-    def feed(self, data, width, height, stride=None, format=PixelFormat.MONO8):
-        """Processes a host frame: `data` is bytes, bytearray or a memoryview of 8-bit pixels
-        (MONO8, BGR8 or RGB8), rows `stride` bytes apart (default: packed)."""
-        img, keep = _image_view(data, width, height, stride, format, writable=False)
-        _check(_lib.posecal_session_feed(self._handle(), ctypes.byref(img)))
-        del keep
+    def feed(self, data: Union[Frame, Buffer], width: Optional[int] = None,
+             height: Optional[int] = None, stride: Optional[int] = None,
+             format: Optional[int] = None) -> None:
+        """Processes a host frame.
 
-    def last_frame(self, format=PixelFormat.BGR8, with_overlay=False):
-        """The last processed frame as (bytearray, width, height, stride), optionally with the
-        guidance overlay drawn into it. Raises StateError before the first frame."""
+        A numpy array is passed alone: uint8, H x W (grey) or H x W x 3 (BGR; `format=
+        PixelFormat.RGB8` for RGB); any view works (one whose rows the library cannot read in
+        place, such as a reversed one, is copied first), read-only ones too. Another dtype or
+        shape raises InvalidArgumentError (a ValueError; a TypeError too for the dtype).
+
+        A raw buffer (bytes, bytearray, memoryview) needs `width` and `height`; `format`
+        (default MONO8) and `stride` (bytes between rows, default packed) describe it."""
+        img = host_image(data, width, height, stride, format, writable=False)
+        _check(_lib.posecal_session_feed(self._handle(), img.ref()))
+
+    def _frame_size(self) -> Tuple[int, int]:
         st = self.status
         if st.get("image_width") is None:
             raise StateError(_errors.E_STATE, "no frame processed yet")
-        w, h = st["image_width"], st["image_height"]
-        stride = w * PixelFormat.CHANNELS[format]
-        buf = bytearray(stride * h)
-        img, keep = _image_view(buf, w, h, stride, format, writable=True)
-        _check(_lib.posecal_session_last_frame(self._handle(), ctypes.byref(img)))
+        return st["image_width"], st["image_height"]
+
+    def last_frame(self, format: int = PixelFormat.BGR8, with_overlay: bool = False) -> Frame:
+        """The last processed frame as a new numpy array: H x W x 3 uint8 (BGR, or RGB with
+        `format=PixelFormat.RGB8`; ready for cv2.imwrite/imshow) or H x W (MONO8), optionally
+        with the guidance overlay drawn into it. Raises StateError before the first frame."""
+        w, h = self._frame_size()
+        frame = new_frame(w, h, format)
+        img = from_array(frame, format, writable=True)
+        _check(_lib.posecal_session_last_frame(self._handle(), img.ref()))
         if with_overlay:
-            _check(_lib.posecal_session_render_overlay(self._handle(), ctypes.byref(img)))
-        del keep
-        return buf, w, h, stride
+            _check(_lib.posecal_session_render_overlay(self._handle(), img.ref()))
+        return frame
 
-    def render_overlay(self, data, width, height, stride=None, format=PixelFormat.BGR8):
-        """Draws the guidance overlay into a writable host image (bytearray/memoryview)."""
-        img, keep = _image_view(data, width, height, stride, format, writable=True)
-        _check(_lib.posecal_session_render_overlay(self._handle(), ctypes.byref(img)))
-        del keep
+    def last_frame_buffer(self, format: int = PixelFormat.BGR8,
+                          with_overlay: bool = False) -> Tuple[bytearray, int, int, int]:
+        """Deprecated: last_frame()'s form before numpy, (bytearray, width, height, stride)."""
+        warnings.warn("Session.last_frame_buffer() is deprecated: last_frame() returns the frame "
+                      "as a numpy array (frame.shape gives its size, frame.tobytes() its bytes)",
+                      DeprecationWarning, stacklevel=2)
+        frame = self.last_frame(format, with_overlay)
+        return bytearray(frame.tobytes()), frame.shape[1], frame.shape[0], frame.strides[0]
 
-    def expected_error_map(self, width=40, height=23):
+    @overload
+    def render_overlay(self, image: None = None, *, format: Optional[int] = None) -> Frame: ...
+
+    @overload
+    def render_overlay(self, image: Frame, *, format: Optional[int] = None) -> Frame: ...
+
+    @overload
+    def render_overlay(self, image: Buffer, width: int, height: int,
+                       stride: Optional[int] = None, format: Optional[int] = None) -> None: ...
+
+    def render_overlay(self, image: Union[Frame, Buffer, None] = None,
+                       width: Optional[int] = None, height: Optional[int] = None,
+                       stride: Optional[int] = None,
+                       format: Optional[int] = None) -> Optional[Frame]:
+        """Draws the guidance overlay (target board, detected corners, text).
+
+        - No image: returns the last frame with the overlay, a new array (as
+          `last_frame(format or BGR8, with_overlay=True)`).
+        - A numpy array of the camera's size (see feed(); BGR unless `format` says otherwise):
+          draws into it in place and returns it. It must be writable; a view the library cannot
+          draw into in place is drawn through a copy.
+        - A writable raw buffer (bytearray, memoryview) with `width` and `height` (`format`
+          default BGR8): draws into it in place and returns None, as before numpy."""
+        if image is None:
+            if width is not None or height is not None or stride is not None:
+                raise InvalidTypeError(_errors.E_INVALID_ARGUMENT,
+                                       "render_overlay(): width, height and stride go with an "
+                                       "image buffer")
+            return self.last_frame(PixelFormat.BGR8 if format is None else format,
+                                   with_overlay=True)
+        array = isinstance(image, np.ndarray) and width is None and height is None
+        if not array and format is None:
+            format = PixelFormat.BGR8
+        img = host_image(image, width, height, stride, format, writable=True)
+        _check(_lib.posecal_session_render_overlay(self._handle(), img.ref()))
+        img.write_back()
+        return image if isinstance(image, np.ndarray) and array else None
+
+    def expected_error_map(self, width: int = 40, height: int = 23) -> List[List[float]]:
         """The predicted RMS projection error in pixels at width x height points from image edge
         to image edge (posecal_session_expected_error_map), as a list of `height` rows of
         `width` floats (NaN where the lens has no ray). Raises StateError before the second
@@ -421,22 +453,22 @@ class Session(_Handle):
         return [list(values[j * width:(j + 1) * width]) for j in range(height)]
 
     # ---- robot mode -----------------------------------------------------------------------
-    def pose_reached(self):
+    def pose_reached(self) -> None:
         """Robot mode: the robot is at the current target."""
         _check(_lib.posecal_session_pose_reached(self._handle()))
 
-    def skip_target(self):
+    def skip_target(self) -> None:
         """Gives up on the current refinement target."""
         _check(_lib.posecal_session_skip_target(self._handle()))
 
-    def interrupt(self):
+    def interrupt(self) -> None:
         """Stops the calibration gracefully (any thread): no further frame is processed,
         status and result say "interrupted", and the calibration so far can be saved."""
         _check(_lib.posecal_session_interrupt(self._handle()))
 
     # ---- state ----------------------------------------------------------------------------
     @property
-    def status(self):
+    def status(self) -> Dict[str, Any]:
         """The session's status (dict: state, keyframes, guidance, parameters, ...)."""
         h = self._handle()
         st = _fetch_json(lambda b, n: _lib.posecal_session_status(h, b, n))
@@ -444,27 +476,30 @@ class Session(_Handle):
         return st
 
     @property
-    def finished(self):
+    def finished(self) -> bool:
         """True once the calibration has converged or failed."""
         if not self._finished and self._h:
             self.status  # noqa: B018 - refreshes _finished
         return self._finished
 
     @property
-    def converged(self):
+    def converged(self) -> bool:
+        """True once the calibration has converged."""
         return self.status["state"] == "converged"
 
     @property
-    def result(self):
-        """The current calibration (dict), or None before the second keyframe."""
+    def result(self) -> Optional[Result]:
+        """The current calibration, or None before the second keyframe: a dict of
+        posecal_session_result's object, with `K`, `D` and `covariance` as numpy arrays
+        (Result)."""
         h = self._handle()
         try:
-            return _fetch_json(lambda b, n: _lib.posecal_session_result(h, b, n))
+            return Result(_fetch_json(lambda b, n: _lib.posecal_session_result(h, b, n)))
         except StateError:
             return None
 
     @property
-    def target_pose(self):
+    def target_pose(self) -> Optional[Tuple[Tuple[float, ...], Tuple[float, ...]]]:
         """The board pose to reach as (rvec, tvec) in the camera frame (metres), or None when
         there is no target."""
         r = (ctypes.c_double * 3)()
@@ -475,19 +510,25 @@ class Session(_Handle):
         _check(status)
         return tuple(r), tuple(t)
 
-    def save(self, path):
-        """Saves the calibration (.yml/.yaml/.json). StateError before two keyframes."""
-        _check(_lib.posecal_session_save(self._handle(), _enc(path, "path")))
+    def save(self, path: PathArg, format: Optional[str] = None) -> None:
+        """Saves the calibration: by the extension (.yml/.yaml/.json/.xml OpenCV, .cameramodel
+        mrcal), or in ``format`` ("opencv", "ros", "mrcal", "kalibr", "halcon";
+        docs/formats.md).
+        StateError before two keyframes; InvalidArgumentError, nothing written, for a model the
+        format cannot hold."""
+        _check(_lib.posecal_session_save_as(self._handle(), _enc(path, "path"),
+                                            _enc(format, "format")))
 
     # ---- events ---------------------------------------------------------------------------
-    def pending_events(self):
+    def pending_events(self) -> List[Event]:
         """The events queued so far (and removes them from the queue)."""
-        out = []
+        out: List[Event] = []
         while self._events:
             out.append(self._events.popleft())
         return out
 
-    def events(self, timeout_ms=1000, max_frames=None):
+    def events(self, timeout_ms: int = 1000,
+               max_frames: Optional[int] = None) -> Iterator[Event]:
         """Steps the session until it finishes (or max_frames frames), yielding every event as
         it is queued. Timeouts and disconnects are yielded as Event("timeout"/"disconnected")
         and stepping goes on; a finite source's end stops the iteration."""
@@ -510,10 +551,10 @@ class Session(_Handle):
         while self._events:
             yield self._events.popleft()
 
-    def __iter__(self):
+    def __iter__(self) -> Iterator[Event]:
         return self.events()
 
-    def run(self, timeout_ms=1000, max_frames=None):
+    def run(self, timeout_ms: int = 1000, max_frames: Optional[int] = None) -> Optional[Result]:
         """Steps until the calibration finishes; returns the result (None without one)."""
         for _ in self.events(timeout_ms, max_frames):
             pass
