@@ -17,6 +17,23 @@ namespace posecal {
 
 enum class BoardType { kCharuco, kChessboard };
 
+// Paper for the printable PDF: the board's own size, or sheets of a standard size.
+enum class Paper { kBoard, kA4, kA3, kLetter };
+// "board", "a4", "a3", "letter" (any case); Error(kInvalidArgument) naming anything else.
+Paper paper_from_name(const std::string& name);
+
+struct PrintOptions {
+  double dpi = 300;        // PNG resolution, [50, 2400]
+  double margin_m = 0.01;  // white border around the board; on paper, the sheet's unprinted
+                           // edge (at least 5 mm)
+  Paper paper = Paper::kBoard;
+};
+
+// One black cell of a marker on the board, board frame (metres): top-left corner and side.
+struct BoardMarkerCell {
+  double x_m, y_m, size_m;
+};
+
 struct BoardSpec {
   BoardType type = BoardType::kCharuco;
   // ChArUco: number of squares. Chessboard: number of inner corners.
@@ -116,9 +133,22 @@ class Board {
   // `margin_squares` of white border. Texel edges coincide with square edges exactly.
   BoardTexture render(int texels_per_square, double margin_squares = 0.0) const;
 
-  // Printable target at exact physical scale: PNG at `dpi` (with a pHYs chunk so the printer
-  // keeps the scale) or vector PDF, chosen by the extension of `path`.
-  void write_printable(const std::string& path, double dpi = 300.0, double margin_m = 0.01) const;
+  // Printable target at exact physical scale (core/board/printable.cpp): vector PDF on the
+  // board's own page or on sheets of a paper size (tiled when the board is larger), each page
+  // with the specification, a 100 mm ruler and "print at 100 %"; or PNG of the board alone at
+  // `dpi` with the resolution in its pHYs chunk. Chosen by the extension of `path`; written
+  // atomically. Throws Error(kInvalidArgument) for a bad option, an unknown extension, a paper
+  // size with a PNG or more than 200 sheets; Error(kIo) when the file cannot be written.
+  void write_printable(const std::string& path, const PrintOptions& options) const;
+  void write_printable(const std::string& path, double dpi = 300.0, double margin_m = 0.01) const {
+    PrintOptions o;
+    o.dpi = dpi;
+    o.margin_m = margin_m;
+    write_printable(path, o);
+  }
+  // The black cells of every ChArUco marker, board frame (empty for a chessboard): what the
+  // vector PDF fills, read from OpenCV's own marker drawing.
+  std::vector<BoardMarkerCell> marker_cells() const;
 
  private:
   struct Impl;
@@ -126,8 +156,6 @@ class Board {
   std::vector<cv::Point2f> detect_chessboard(const cv::Mat& gray,
                                              const DetectorOptions& options) const;
   void detect_charuco(const cv::Mat& gray, const DetectorOptions& options, Detection* det) const;
-  // printable.cpp: the PDF page's content stream.
-  std::string pdf_content(double margin_m, double page_h) const;
   BoardSpec spec_;
   std::vector<cv::Point3d> corners_;
   std::shared_ptr<const Impl> impl_;

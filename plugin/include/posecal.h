@@ -124,7 +124,7 @@ POSECAL_API posecal_status posecal_camera_grab(posecal_context* ctx, const char*
                                                int count, const char* out_dir, int timeout_ms,
                                                char* buf, size_t* size) POSECAL_NOEXCEPT;
 
-/* Test-set error of an existing calibration file (OpenCV YAML/JSON as posecal writes it):
+/* Test-set error of an existing calibration file (any format posecal writes, docs/formats.md):
  * every test frame's board pose is refitted by PnP with the file's intrinsics and eps_test is the
  * RMS reprojection error over all test points (the paper's estimation error).
  *  - sim:// cameras: the fixed 50-frame test set of that simulated camera (the same frames its
@@ -148,6 +148,15 @@ POSECAL_API posecal_status posecal_evaluate(posecal_context* ctx, const char* re
  * physical scale: vector PDF or PNG at `dpi`, chosen by the extension of `path`. Any thread. */
 POSECAL_API posecal_status posecal_write_target(const char* target_spec, const char* path,
                                                 double dpi, double margin_m) POSECAL_NOEXCEPT;
+/* The same with options (docs/board.md): options_json NULL or an object with optional keys
+ * "paper" ("board" (default): one page of the board's size; "a4", "a3", "letter": sheets of that
+ * size, the board tiled over several when it does not fit one), "dpi" (PNG resolution, 50..2400,
+ * default 300), "margin_m" (default 0.01: the white border around the board, on paper the sheet's
+ * unprinted edge, at least 5 mm). Each PDF page carries the specification, a 100 mm ruler and
+ * "print at 100 %". POSECAL_E_INVALID_ARGUMENT for an unknown key or value, a paper size with a
+ * .png, or a board that needs more than 200 sheets; nothing is written then. Any thread. */
+POSECAL_API posecal_status posecal_write_target_ex(const char* target_spec, const char* path,
+                                                   const char* options_json) POSECAL_NOEXCEPT;
 
 /* ---- Offline calibration from a folder of images ------------------------------------------ */
 typedef struct posecal_calibration posecal_calibration;
@@ -166,9 +175,20 @@ POSECAL_API posecal_status posecal_calibrate_images(posecal_context* ctx, const 
  * "used", "rejected", "per_frame_rms", "covariance" (intrinsics block, scaled), ... */
 POSECAL_API posecal_status posecal_calibration_json(const posecal_calibration* cal, char* buf,
                                                     size_t* size) POSECAL_NOEXCEPT;
-/* Writes OpenCV YAML (.yml/.yaml) or JSON (.json) in cv::FileStorage format. */
+/* Writes OpenCV YAML (.yml/.yaml), JSON (.json) or XML (.xml) in cv::FileStorage format, or an
+ * mrcal model (.cameramodel), by extension; posecal_calibration_save_as names the format. */
 POSECAL_API posecal_status posecal_calibration_save(const posecal_calibration* cal,
                                                     const char* path) POSECAL_NOEXCEPT;
+/* Writes the calibration in `format`: "opencv" (YAML, or JSON/XML by a .json/.xml path), "ros"
+ * (camera_info YAML), "mrcal" (.cameramodel), "kalibr" (camchain YAML, cam0 pinhole-radtan),
+ * "halcon" (area_scan_polynomial camera parameters, a fit); NULL or "": by the path's extension,
+ * as posecal_calibration_save. docs/formats.md has each format's fields. POSECAL_E_INVALID_ARGUMENT,
+ * nothing written, for an unknown format, a path whose extension is another format's, or a model
+ * the format cannot hold (Kalibr's radtan has no k3; HALCON's polynomial fits it worse than
+ * 0.1 px); the message names the format and the lens model. The file is written atomically. */
+POSECAL_API posecal_status posecal_calibration_save_as(const posecal_calibration* cal,
+                                                       const char* path,
+                                                       const char* format) POSECAL_NOEXCEPT;
 POSECAL_API void posecal_calibration_destroy(posecal_calibration* cal) POSECAL_NOEXCEPT;
 
 /* ---- Calibration sessions: one camera, one pose-selection engine --------------------------- */
@@ -311,16 +331,22 @@ POSECAL_API posecal_status posecal_session_expected_error_map(posecal_session* s
  * calibration yet). Allowed in the event callback. */
 POSECAL_API posecal_status posecal_session_result(posecal_session* session, char* buf,
                                                   size_t* size) POSECAL_NOEXCEPT;
-/* Saves the calibration: OpenCV YAML (.yml/.yaml) or JSON (.json) by extension.
- * POSECAL_E_STATE before the second keyframe. */
+/* Saves the calibration by extension: OpenCV YAML (.yml/.yaml), JSON (.json) or XML (.xml), or
+ * mrcal (.cameramodel). The OpenCV file holds the model, the standard deviations, the intrinsics
+ * covariance (scaled, as the result's "covariance"), expected_error_px, and "converged" and
+ * "interrupted" as the integers 0/1. POSECAL_E_STATE before the second keyframe. */
 POSECAL_API posecal_status posecal_session_save(posecal_session* session,
                                                 const char* path) POSECAL_NOEXCEPT;
+/* posecal_session_save in a named `format` (NULL or "": by extension), with the formats and
+ * errors of posecal_calibration_save_as. */
+POSECAL_API posecal_status posecal_session_save_as(posecal_session* session, const char* path,
+                                                   const char* format) POSECAL_NOEXCEPT;
 
 /* Stops the calibration gracefully, e.g. when the host is asked to quit: no further frame is
  * processed (posecal_session_step and _feed return POSECAL_E_STATE), status and result say
  * "interrupted": true and "finished": true, and what was calibrated so far can still be read
- * (posecal_session_result) and saved (posecal_session_save writes "interrupted: true" and
- * "converged: false" into the file). A calibration that has already finished keeps its outcome.
+ * (posecal_session_result) and saved (posecal_session_save writes "interrupted: 1" and
+ * "converged: 0" into the OpenCV file). A calibration that has already finished keeps its outcome.
  * Idempotent. Thread: any thread, also while another is inside posecal_session_step (that call
  * finishes its frame first); also allowed in the event callback. Not async-signal-safe: from a
  * signal handler set a flag and call this from a thread. */

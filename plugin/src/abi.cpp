@@ -19,6 +19,18 @@ struct posecal_calibration {
   std::string images_dir;
 };
 
+namespace {
+
+void save_offline(const posecal_calibration* cal, const char* path, const char* format) {
+  require(cal, "cal");
+  require(path, "path");
+  CalibrationFileExtras extras;
+  extras.strings = {{"target", cal->board.to_string()}};
+  abi::save_calibration(path, cal->offline.result, format, extras);
+}
+
+}  // namespace
+
 extern "C" {
 
 POSECAL_API unsigned posecal_abi_version(void) noexcept { return POSECAL_ABI_VERSION; }
@@ -97,6 +109,22 @@ POSECAL_API posecal_status posecal_write_target(const char* target_spec, const c
   });
 }
 
+POSECAL_API posecal_status posecal_write_target_ex(const char* target_spec, const char* path,
+                                                   const char* options_json) noexcept {
+  return guarded(__func__, [&] {
+    require(path, "path");
+    const char* what = "target options";
+    const auto opts = abi::parse_options(options_json, {"paper", "dpi", "margin_m"}, what);
+    PrintOptions o;
+    o.paper = paper_from_name(abi::get_string(opts, "paper", "board", what));
+    o.dpi = abi::get_double(opts, "dpi", 300, 50, 2400, what);
+    o.margin_m = abi::get_double(opts, "margin_m", 0.01, 0, 0.999, what);
+    const BoardSpec spec = target_spec ? BoardSpec::parse(target_spec) : BoardSpec{};
+    Board(spec).write_printable(path, o);
+    return POSECAL_OK;
+  });
+}
+
 POSECAL_API posecal_status posecal_calibrate_images(posecal_context* ctx, const char* images_dir,
                                                     const char* target_spec,
                                                     const char* options_json,
@@ -151,9 +179,16 @@ POSECAL_API posecal_status posecal_calibration_json(const posecal_calibration* c
 POSECAL_API posecal_status posecal_calibration_save(const posecal_calibration* cal,
                                                     const char* path) noexcept {
   return guarded(__func__, [&] {
-    require(cal, "cal");
-    require(path, "path");
-    abi::save_calibration(path, cal->offline.result, {{"target", cal->board.to_string()}});
+    save_offline(cal, path, nullptr);
+    return POSECAL_OK;
+  });
+}
+
+POSECAL_API posecal_status posecal_calibration_save_as(const posecal_calibration* cal,
+                                                       const char* path,
+                                                       const char* format) noexcept {
+  return guarded(__func__, [&] {
+    save_offline(cal, path, format);
     return POSECAL_OK;
   });
 }

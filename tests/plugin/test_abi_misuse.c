@@ -251,6 +251,19 @@ static void test_camera_calls(posecal_context* ctx) {
   CHECK(posecal_write_target(NULL, "/proc/posecal_no/board.png", 300, 0.01) != POSECAL_OK);
   CHECK(posecal_last_error()[0] != '\0');
   EXPECT_OK(posecal_write_target(NULL, path_in("board/board.png"), 50, 0.01));
+  EXPECT_INVALID(posecal_write_target_ex(NULL, NULL, NULL));
+  EXPECT_INVALID(posecal_write_target_ex(NULL, path_in("t.pdf"), "{\"paper\": \"a5\"}"));
+  EXPECT_MESSAGE("a5");
+  EXPECT_INVALID(posecal_write_target_ex(NULL, path_in("t.pdf"), "{\"papers\": \"a4\"}"));
+  EXPECT_INVALID(posecal_write_target_ex(NULL, path_in("t.pdf"), "{\"dpi\": 1e9}"));
+  EXPECT_INVALID(posecal_write_target_ex(NULL, path_in("t.pdf"), "[1]"));
+  EXPECT_INVALID(posecal_write_target_ex(NULL, path_in("t.png"), "{\"paper\": \"a4\"}"));
+  EXPECT_INVALID(posecal_write_target_ex("chessboard:99x99:0.5", path_in("t.pdf"),
+                                         "{\"paper\": \"a4\"}"));
+  EXPECT_MESSAGE("sheets");
+  EXPECT_OK(posecal_write_target_ex(NULL, path_in("board/board_a4.pdf"),
+                                    "{\"paper\": \"a4\", \"margin_m\": 0.008}"));
+  EXPECT_OK(posecal_write_target_ex(NULL, path_in("board/board_ex.png"), NULL));
 }
 
 static void test_evaluate(posecal_context* ctx, const char* result_path) {
@@ -328,6 +341,7 @@ static void test_offline(posecal_context* ctx) {
   size_t size = 0;
   EXPECT_INVALID(posecal_calibration_json(NULL, NULL, &size));
   EXPECT_INVALID(posecal_calibration_save(NULL, path_in("x.yml")));
+  EXPECT_INVALID(posecal_calibration_save_as(NULL, path_in("x.yml"), "ros"));
   posecal_calibration_destroy(NULL);
 }
 
@@ -686,6 +700,17 @@ static void test_session_states(posecal_context* ctx) {
   EXPECT_STATE(posecal_session_target_pose(s, rv, tv));
   EXPECT_OK(posecal_session_save(s, path_in("result.yml")));
   EXPECT_OK(posecal_session_save(s, path_in("result.json")));
+  /* Named formats (docs/formats.md): NULL or "" is by extension; an unknown name or a file name
+   * of another format is refused naming it. */
+  EXPECT_OK(posecal_session_save_as(s, path_in("result.cameramodel"), NULL));
+  EXPECT_OK(posecal_session_save_as(s, path_in("result.xml"), ""));
+  EXPECT_OK(posecal_session_save_as(s, path_in("result_ros.yaml"), "ros"));
+  EXPECT_INVALID(posecal_session_save_as(s, path_in("result_x.yml"), "halcon9"));
+  EXPECT_MESSAGE("halcon9");
+  EXPECT_INVALID(posecal_session_save_as(s, path_in("result_ros.json"), "ros"));
+  EXPECT_MESSAGE("result_ros.json");
+  EXPECT_INVALID(posecal_session_save_as(NULL, path_in("x.yml"), "ros"));
+  EXPECT_INVALID(posecal_session_save_as(s, NULL, "ros"));
   /* (the result itself is checked by plugin_c_abi: for sim:// it renders the test set) */
   size = 0;
   EXPECT_STATUS(posecal_session_status(s, NULL, &size), POSECAL_E_BUFFER_TOO_SMALL);

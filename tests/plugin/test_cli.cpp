@@ -21,6 +21,7 @@
 #include <sstream>
 
 #include "board/board.hpp"
+#include "io/model_file.hpp"
 
 namespace fs = std::filesystem;
 
@@ -162,6 +163,19 @@ TEST(Cli, WritesPrintableBoard) {
   EXPECT_EQ(r.status, 0) << r.out;
   r = run("board --out /nonexistent/dir/board.pdf");
   EXPECT_EQ(r.status, 2) << r.out;
+  // Paper sizes (tests/unit/test_printable.cpp measures the pages).
+  const std::string a3 = testing::TempDir() + "/cli_board_a3.pdf";
+  r = run("board --out " + a3 + " --paper A3 --target charuco:14x10:0.04:0.03:DICT_5X5_100");
+  EXPECT_EQ(r.status, 0) << r.out;
+  std::ifstream f(a3, std::ios::binary);
+  const std::string pdf((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
+  EXPECT_NE(pdf.find("/Count 4"), std::string::npos) << "four A3 sheets";
+  r = run("board --out " + testing::TempDir() + "/cli_board_a5.pdf --paper a5");
+  EXPECT_EQ(r.status, 1) << r.out;
+  EXPECT_NE(r.out.find("a5"), std::string::npos) << r.out;
+  r = run("board --out " + png + " --paper a4");
+  EXPECT_EQ(r.status, 2) << r.out;
+  EXPECT_NE(r.out.find("paper size applies to a PDF"), std::string::npos) << r.out;
 }
 
 namespace {
@@ -785,4 +799,108 @@ TEST(Cli, RobotStdioControllerGoneOrAborting) {
     EXPECT_EQ(nlohmann::json::parse(c.read_line(60000))["event"], "target");
     EXPECT_EQ(c.wait_exit(), 2);  // no reply within 0.5 s
   }
+}
+
+// ---- Result file formats (issue 17; docs/formats.md) -----------------------------------------
+
+namespace {
+
+std::string read_text(const std::string& path) {
+  std::ifstream in(path, std::ios::binary);
+  return std::string((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+}
+
+// One short simulated calibration (seed 3, 4 keyframes: k3 != 0) written as `out` with `args`.
+CliRun simulate_to(const std::string& out, const std::string& args = "") {
+  fs::remove(out);
+  return run("simulate --seed 3 --max-keyframes 4 --json --out " + out + " " + args, true);
+}
+
+// The intrinsics of a --json result, in the model's parameter order.
+std::vector<double> result_params(const nlohmann::json& j) {
+  std::vector<double> p;
+  for (const auto& name : j["covariance_order"]) p.push_back(j[name.get<std::string>()].get<double>());
+  return p;
+}
+
+}  // namespace
+
+TEST(Cli, FormatMrcalByExtensionAndRosByName) {
+  const std::string dir = temp_dir("posecal_formats");
+  const std::string mrcal = dir + "/x.cameramodel", ros = dir + "/x.yaml", xml = dir + "/x.xml";
+  const CliRun a = simulate_to(mrcal);
+  ASSERT_TRUE(a.status == 0 || a.status == 3) << a.out;  // 3: not converged, still written
+  const std::vector<double> params = result_params(nlohmann::json::parse(a.out));
+  const posecal::ModelFile m = posecal::read_model_file(mrcal);
+  EXPECT_EQ(m.format, posecal::ModelFormat::kMrcal);
+  ASSERT_EQ(m.model.params().size(), params.size());
+  for (size_t i = 0; i < params.size(); ++i) EXPECT_DOUBLE_EQ(m.model.params()[i], params[i]) << i;
+  EXPECT_NE(read_text(mrcal).find("'lensmodel': 'LENSMODEL_OPENCV5'"), std::string::npos);
+
+  const CliRun b = simulate_to(ros, "--format ros");
+  ASSERT_TRUE(b.status == 0 || b.status == 3) << b.out;
+  const posecal::ModelFile r = posecal::read_model_file(ros);
+  EXPECT_EQ(r.format, posecal::ModelFormat::kRos);
+  EXPECT_EQ(r.model.params(), m.model.params());  // the same calibration (seed 3)
+  EXPECT_NE(read_text(ros).find("camera_name: sim_3\n"), std::string::npos) << read_text(ros);
+
+  // OpenCV XML by extension, with the covariance and the outcome as 0/1.
+  const CliRun c = simulate_to(xml);
+  ASSERT_TRUE(c.status == 0 || c.status == 3) << c.out;
+  const posecal::ModelFile x = posecal::read_model_file(xml);
+  EXPECT_EQ(x.model.params(), m.model.params());
+  EXPECT_EQ(x.extras.covariance.size(), params.size() * params.size());
+  EXPECT_EQ(x.extras.converged, std::optional<bool>(c.status == 0));
+  EXPECT_NE(read_text(xml).find("<converged>"), std::string::npos);
+}
+
+TEST(Cli, FormatUnknownOrNotMatchingTheFileIsAUsageError) {
+  const std::string dir = temp_dir("posecal_formats_usage");
+  const auto t0 = std::chrono::steady_clock::now();
+  CliRun r = simulate_to(dir + "/x.yml", "--format halcon7");
+  EXPECT_EQ(r.status, 1);
+  r = run("simulate --seed 3 --out " + dir + "/x.yml --format halcon7");
+  EXPECT_NE(r.out.find("--format"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("halcon7"), std::string::npos) << r.out;
+  r = run("simulate --seed 3 --out " + dir + "/x.yml --format mrcal");
+  EXPECT_EQ(r.status, 1) << r.out;
+  EXPECT_NE(r.out.find(".cameramodel"), std::string::npos) << r.out;
+  r = run("calibrate --images " + dir + " --out " + dir + "/x.txt");
+  EXPECT_EQ(r.status, 1) << r.out;
+  // Refused before any calibration ran, and nothing written.
+  EXPECT_LT(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(), 10);
+  EXPECT_FALSE(fs::exists(dir + "/x.yml"));
+  EXPECT_FALSE(fs::exists(dir + "/x.txt"));
+}
+
+// Kalibr's radtan has no k3, and HALCON's polynomial follows this strongly distorted lens far
+// worse than its limit of 0.1 px: the calibration is refused naming the format and the model;
+// nothing is written.
+TEST(Cli, FormatKalibrAndHalconRefuseAModelTheyCannotHold) {
+  const std::string dir = temp_dir("posecal_formats_refused");
+  for (const std::string format : {"kalibr", "halcon"}) {
+    const std::string out = dir + (format == "kalibr" ? "/camchain.yaml" : "/camera.dat");
+    const CliRun r =
+        run("simulate --seed 3 --max-keyframes 4 --format " + format + " --out " + out);
+    EXPECT_EQ(r.status, 2) << r.out;
+    for (const std::string& needle :
+         {format, std::string("opencv5"), std::string(format == "kalibr" ? "k3" : "0.1 px"),
+          std::string("nothing written"), std::string("INVALID_ARGUMENT")}) {
+      EXPECT_NE(r.out.find(needle), std::string::npos) << needle << " in " << r.out;
+    }
+    EXPECT_FALSE(fs::exists(out));
+  }
+}
+
+// The station's --format names a format: one file per camera with the format's extension.
+TEST(Cli, FormatOfTheStationFiles) {
+  const std::string dir = temp_dir("posecal_formats_station");
+  const CliRun r = run("station --cameras 'sim://?seed=3' --max-keyframes 4 --format mrcal "
+                       "--out-dir " + dir + " --json",
+                       true);
+  ASSERT_TRUE(r.status == 0 || r.status == 3) << r.out;
+  const auto j = nlohmann::json::parse(r.out);
+  const std::string file = j["cameras"][0]["file"].get<std::string>();
+  EXPECT_EQ(fs::path(file).filename().string(), "sim-3.cameramodel");
+  EXPECT_EQ(posecal::read_model_file(file).format, posecal::ModelFormat::kMrcal);
 }
