@@ -36,6 +36,7 @@ ModelFile parse_halcon(const std::string& path, std::string_view text);
                               const std::string& why);
 
 // ---- A parsed tree of the YAML subset / Python literal --------------------------------------
+struct TextEntry;
 struct TextNode {
   enum class Kind { kScalar, kSeq, kMap };
   Kind kind = Kind::kScalar;
@@ -44,7 +45,14 @@ struct TextNode {
   bool empty = false;           // "key:" with nothing after it (YAML's null)
   int line = 0;                 // where it starts (1-based)
   std::vector<TextNode> items;  // kSeq
-  std::vector<std::pair<std::string, TextNode>> entries;  // kMap, in file order, keys unique
+  // kMap, in file order, keys unique. (Not std::pair<std::string, TextNode>: a pair of the
+  // incomplete TextNode instantiated inside this class fails with clang and libstdc++.)
+  std::vector<TextEntry> entries;
+};
+// One key of a map; first/second as in a pair, so structured bindings read [key, value].
+struct TextEntry {
+  std::string first;
+  TextNode second;
 };
 
 // YAML as camera_calibration, yaml-cpp and Kalibr write it: block maps and sequences by

@@ -135,7 +135,7 @@ class TreeParser {
   // must not take quadratic time).
   void add_entry(TextNode* map, std::set<std::string>* keys, std::string key, TextNode value) {
     if (!keys->insert(key).second) fail("key '" + key + "' appears twice");
-    map->entries.emplace_back(std::move(key), std::move(value));
+    map->entries.push_back(TextEntry{std::move(key), std::move(value)});
   }
 
   // ---- YAML block structure -----------------------------------------------------------------

@@ -2,8 +2,11 @@
 
 #include <algorithm>
 #include <cerrno>
+#include <chrono>
 #include <cmath>
+#include <cstdio>
 #include <cstdlib>
+#include <ctime>
 #include <mutex>
 
 #include "common/atomic_file.hpp"
@@ -15,7 +18,32 @@ namespace {
 // stdout and stderr carry lines from several threads (station) and from the event callback.
 std::mutex g_out_mutex;
 
+// The clock every event's "mono_ms" counts from: the first use, early in main.
+const std::chrono::steady_clock::time_point g_start = std::chrono::steady_clock::now();
+
+// UTC wall time with milliseconds, ISO 8601: "2026-12-03T11:55:01.123Z".
+std::string utc_iso8601_ms() {
+  const auto now = std::chrono::system_clock::now();
+  const auto ms = std::chrono::duration_cast<std::chrono::milliseconds>(now.time_since_epoch());
+  const std::time_t seconds = static_cast<std::time_t>(ms.count() / 1000);
+  std::tm tm{};
+  gmtime_r(&seconds, &tm);
+  char buf[96];  // room for any int in each field, so the compiler sees no truncation
+  std::snprintf(buf, sizeof buf, "%04d-%02d-%02dT%02d:%02d:%02d.%03dZ", tm.tm_year + 1900,
+                tm.tm_mon + 1, tm.tm_mday, tm.tm_hour, tm.tm_min, tm.tm_sec,
+                static_cast<int>(ms.count() % 1000));
+  return buf;
+}
+
 }  // namespace
+
+void stamp_event(Json* j) {
+  if (!j->is_object() || !j->contains("event")) return;
+  (*j)["time"] = utc_iso8601_ms();
+  (*j)["mono_ms"] = std::chrono::duration_cast<std::chrono::milliseconds>(
+                        std::chrono::steady_clock::now() - g_start)
+                        .count();
+}
 
 void check(posecal_status s) {
   if (s != POSECAL_OK) throw Failure{s, posecal_last_error()};
@@ -61,8 +89,10 @@ Session::Session(posecal_context* ctx, const std::string& uri, const Json& confi
 Session::~Session() { posecal_session_close(s_); }
 
 void write_line(FILE* out, const Json& j) {
+  Json line = j;
+  stamp_event(&line);
   std::lock_guard<std::mutex> lock(g_out_mutex);
-  std::fprintf(out, "%s\n", json_text(j).c_str());
+  std::fprintf(out, "%s\n", json_text(line).c_str());
   std::fflush(out);
 }
 

@@ -68,8 +68,12 @@ class Session {
 };
 
 // Writes one JSON line and flushes. Event lines, protocol lines and the station's messages
-// share stdout/stderr across threads: one line at a time.
+// share stdout/stderr across threads: one line at a time. A line with an "event" key gets its
+// timestamps (stamp_event).
 void write_line(FILE* out, const Json& j);
+// Adds "time" (UTC, ISO 8601 with milliseconds) and "mono_ms" (a monotonic clock's
+// milliseconds since the program started) to an event object; other JSON is left alone.
+void stamp_event(Json* j);
 // Prints a message line to stderr under the same lock as write_line.
 void print_error_line(const std::string& text);
 

@@ -608,9 +608,17 @@ TEST(Cli, LiveCalibrationPrintsJsonEvents) {
   const auto lines = lines_of(r.out);
   ASSERT_GT(lines.size(), 5u);
   std::set<std::string> kinds;
+  const std::regex iso8601(R"(\d{4}-\d\d-\d\dT\d\d:\d\d:\d\d\.\d{3}Z)");
+  int64_t previous_ms = -1;
   for (const auto& line : lines) {
     const auto j = nlohmann::json::parse(line);  // every line is one JSON object
     kinds.insert(j["event"].get<std::string>());
+    // Every event is stamped: UTC wall time and a monotonic clock that never goes back.
+    ASSERT_TRUE(j["time"].is_string()) << line;
+    EXPECT_TRUE(std::regex_match(j["time"].get<std::string>(), iso8601)) << line;
+    ASSERT_TRUE(j["mono_ms"].is_number_integer()) << line;
+    EXPECT_GE(j["mono_ms"].get<int64_t>(), previous_ms) << line;
+    previous_ms = j["mono_ms"].get<int64_t>();
   }
   EXPECT_TRUE(kinds.count("captured"));
   EXPECT_TRUE(kinds.count("state_changed"));
