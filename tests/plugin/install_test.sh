@@ -26,6 +26,10 @@ for f in "$libdir/libposecal.so" "$libdir/libposecal.so.1" include/posecal.h bin
          "$pydir/posecal/py.typed"; do
   [ -e "$prefix/$f" ] || { echo "missing in the prefix: $f"; exit 1; }
 done
+# The wheel for `pip install` from the prefix, where the build made one (plugin/CMakeLists.txt).
+if ls "$build"/plugin/python-wheel/posecal-*.whl > /dev/null 2>&1; then
+  ls "$prefix"/share/posecal/python/posecal-*-py3-none-any.whl > /dev/null || { echo "no wheel installed"; exit 1; }
+fi
 [ -L "$prefix/$libdir/libposecal.so" ] && [ -L "$prefix/$libdir/libposecal.so.1" ] ||
   { echo "soname links missing"; exit 1; }
 [ "$(readlink "$prefix/$libdir/libposecal.so")" = libposecal.so.1 ] || { echo "bad dev link"; exit 1; }
