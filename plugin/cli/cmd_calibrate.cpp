@@ -21,6 +21,7 @@ struct CalibrateOptions {
   bool json = false;
   // --images
   bool fix_principal_point = false, fix_aspect_ratio = false, zero_tangential = false;
+  std::string camera_group;
   // --camera
   std::string guide = "overlay";
   bool no_window = false;
@@ -33,18 +34,30 @@ struct CalibrateOptions {
 // ---- --images ----
 
 void print_images_result(const CalibrateOptions& o, const Json& j) {
-  std::printf("calibrated from %zu image(s), %zu rejected; RMS %.4f px\n", j["used"].size(),
-              j["rejected"].size(), num_or(j, "rms", -1));
+  std::printf("calibrated group '%s' from %zu image(s), %zu not used; RMS %.4f px\n",
+              j.value("camera_group", "").c_str(), j["used"].size(), j["rejected"].size(),
+              num_or(j, "rms", -1));
   for (const auto& name : j["covariance_order"]) {
     const std::string n = name.get<std::string>();
     std::printf("  %-3s = %14.6f  +- %.6f\n", n.c_str(), num_or(j, n, NAN),
                 num_or(j["std"], n, NAN));
   }
   for (const auto& r : j["rejected"]) {
-    std::printf("  rejected %s: %s\n", r["file"].get<std::string>().c_str(),
+    std::printf("  not used %s: %s\n", r["file"].get<std::string>().c_str(),
                 r["reason"].get<std::string>().c_str());
   }
   if (!o.out.empty()) std::printf("written %s\n", o.out.c_str());
+}
+
+void print_image_progress(void*, const char*, const char* payload) {
+  const Json p = Json::parse(payload, nullptr, false);
+  if (p.is_discarded()) return;
+  const std::string what = p.value("used", false)
+                               ? std::to_string(p.value("corners", 0)) + " corners"
+                               : "not used: " + p.value("reason", std::string());
+  std::printf("[%d/%d] %s: %s\n", p.value("index", 0), p.value("total", 0),
+              p.value("file", std::string()).c_str(), what.c_str());
+  std::fflush(stdout);
 }
 
 int calibrate_images(const CalibrateOptions& o) {
@@ -55,9 +68,13 @@ int calibrate_images(const CalibrateOptions& o) {
   if (o.zero_tangential) opts["zero_tangential"] = true;
   const std::string target = o.session->config().value("target", "");
   posecal_calibration* cal = nullptr;
-  check(posecal_calibrate_images(c.get(), o.images.c_str(),
-                                 target.empty() ? nullptr : target.c_str(), opts.dump().c_str(),
-                                 &cal));
+  if (!o.camera_group.empty()) opts["camera_group"] = o.camera_group;
+  // Text mode: one progress line per image as it is done (a long folder is not silent); --json
+  // prints the one result document only.
+  const posecal_event_fn progress = o.json ? nullptr : print_image_progress;
+  check(posecal_calibrate_images_ex(c.get(), o.images.c_str(),
+                                    target.empty() ? nullptr : target.c_str(),
+                                    opts.dump().c_str(), progress, nullptr, &cal));
   const std::unique_ptr<posecal_calibration, void (*)(posecal_calibration*)> guard(
       cal, posecal_calibration_destroy);
   if (!o.out.empty()) {
@@ -193,6 +210,11 @@ void add_images_options(CLI::App* cmd, CalibrateOptions* o) {
   cmd->add_flag("--fix-aspect-ratio", o->fix_aspect_ratio, "hold fy / fx at its initial value")
       ->group(group);
   cmd->add_flag("--zero-tangential", o->zero_tangential, "hold p1 = p2 = 0")->group(group);
+  cmd->add_option("--camera-group", o->camera_group,
+                  "where the folder mixes cameras or image sizes, calibrate this group: its name "
+                  "(left@640x480), camera (left) or size (640x480); without it such a folder is "
+                  "refused with the list of groups")
+      ->group(group);
 }
 
 void add_camera_options(CLI::App* cmd, CalibrateOptions* o) {

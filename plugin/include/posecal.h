@@ -158,21 +158,43 @@ POSECAL_API posecal_status posecal_write_target(const char* target_spec, const c
 POSECAL_API posecal_status posecal_write_target_ex(const char* target_spec, const char* path,
                                                    const char* options_json) POSECAL_NOEXCEPT;
 
+/* Callback of session events (posecal_session_set_callback) and of offline progress
+ * (posecal_calibrate_images_ex): a kind and a JSON payload, valid only during the call. */
+typedef void (*posecal_event_fn)(void* user_data, const char* kind, const char* payload_json);
+
 /* ---- Offline calibration from a folder of images ------------------------------------------ */
 typedef struct posecal_calibration posecal_calibration;
 
-/* Calibrates from every image of `images_dir` (name order). options_json: NULL or an object
- * with optional keys "fix_principal_point", "fix_aspect_ratio", "zero_tangential" (bool),
- * "fixed" (array of parameter names), "min_corners" (int >= 4). Unreadable images and images
- * without the target are listed in the result, not fatal. Blocks for the whole calibration
+/* Calibrates from the images of `images_dir` (name order). The images are first grouped by
+ * size (from their headers) and by camera, the file name without its frame number ("left" for
+ * left01.jpg .. left14.jpg; a name no other image shares names no camera and goes with the one
+ * camera of its size); a folder of several groups needs "camera_group", else
+ * POSECAL_E_INVALID_ARGUMENT with a message listing the groups (docs/c-api.md, "Offline").
+ * options_json: NULL or an object with optional keys "fix_principal_point", "fix_aspect_ratio",
+ * "zero_tangential" (bool), "fixed" (array of parameter names), "min_corners" (int >= 4),
+ * "camera_group" (a group's name "left@640x480", its camera "left" or its size "640x480", where
+ * that names one group). Unreadable images, the other groups' images and images without the
+ * target are listed in the result with the reason, not fatal. Blocks for the whole calibration
  * (detection ~50 ms per image plus a solve of well under a second for 20 images). */
 POSECAL_API posecal_status posecal_calibrate_images(posecal_context* ctx, const char* images_dir,
                                                     const char* target_spec,
                                                     const char* options_json,
                                                     posecal_calibration** out) POSECAL_NOEXCEPT;
+/* The same, calling `progress` (if not NULL) on the calling thread after each image of the
+ * group with kind "image" and {"index" (1-based), "total", "file", "corners", "used", and
+ * "reason" when not used}. The callback must not throw (a C++ exception is caught and dropped)
+ * and must not call into the library. */
+POSECAL_API posecal_status posecal_calibrate_images_ex(posecal_context* ctx,
+                                                       const char* images_dir,
+                                                       const char* target_spec,
+                                                       const char* options_json,
+                                                       posecal_event_fn progress, void* user_data,
+                                                       posecal_calibration** out) POSECAL_NOEXCEPT;
 /* Result JSON: "fx" ... "k3", "std" (object, sigma scaled by the residual variance),
  * "std_unit" (sigma at 1 px noise, paper eq. 5), "rms", "frames_used", "frames_rejected",
- * "used", "rejected", "per_frame_rms", "covariance" (intrinsics block, scaled), ... */
+ * "used", "rejected" ([{"file", "reason"}] in name order), "camera_group" (the group
+ * calibrated), "groups" ([{"name", "camera", "width", "height", "images"}]), "per_frame_rms",
+ * "covariance" (intrinsics block, scaled), ... */
 POSECAL_API posecal_status posecal_calibration_json(const posecal_calibration* cal, char* buf,
                                                     size_t* size) POSECAL_NOEXCEPT;
 /* Writes OpenCV YAML (.yml/.yaml), JSON (.json) or XML (.xml) in cv::FileStorage format, or an
@@ -363,7 +385,6 @@ POSECAL_API posecal_status posecal_session_interrupt(posecal_session* session) P
  * contexts may be used as usual. The strings are valid only during the call. The callback must
  * not throw (a C++ exception is caught and dropped) and should return quickly: the frame waits.
  * fn = NULL removes the callback. Not allowed inside the callback. */
-typedef void (*posecal_event_fn)(void* user_data, const char* kind, const char* payload_json);
 POSECAL_API posecal_status posecal_session_set_callback(posecal_session* session,
                                                         posecal_event_fn fn,
                                                         void* user_data) POSECAL_NOEXCEPT;

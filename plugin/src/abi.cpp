@@ -125,19 +125,22 @@ POSECAL_API posecal_status posecal_write_target_ex(const char* target_spec, cons
   });
 }
 
-POSECAL_API posecal_status posecal_calibrate_images(posecal_context* ctx, const char* images_dir,
-                                                    const char* target_spec,
-                                                    const char* options_json,
-                                                    posecal_calibration** out) noexcept {
-  return guarded(__func__, [&] {
+namespace {
+
+posecal_status calibrate_images_with(posecal_context* ctx, const char* images_dir,
+                                     const char* target_spec, const char* options_json,
+                                     posecal_event_fn progress, void* user_data,
+                                     posecal_calibration** out, const char* function) {
+  return guarded(function, [&] {
     require(ctx, "ctx");
     require(images_dir, "images_dir");
     require(out, "out");
     *out = nullptr;
-    const auto opts = abi::parse_options(
-        options_json,
-        {"fix_principal_point", "fix_aspect_ratio", "zero_tangential", "fixed", "min_corners"},
-        "calibration options");
+    const auto opts = abi::parse_options(options_json,
+                                         {"fix_principal_point", "fix_aspect_ratio",
+                                          "zero_tangential", "fixed", "min_corners",
+                                          "camera_group"},
+                                         "calibration options");
     const char* what = "calibration options";
     OfflineOptions o;
     o.calibration.fix_principal_point = abi::get_bool(opts, "fix_principal_point", false, what);
@@ -145,9 +148,22 @@ POSECAL_API posecal_status posecal_calibrate_images(posecal_context* ctx, const 
     o.calibration.zero_tangential = abi::get_bool(opts, "zero_tangential", false, what);
     o.calibration.fixed = abi::get_strings(opts, "fixed", what);
     o.min_corners = abi::get_int(opts, "min_corners", 6, 4, 100000, what);
+    o.camera_group = abi::get_string(opts, "camera_group", "", what);
     std::string why;
     if (!o.calibration.is_valid(&why))
       throw Error(ErrorCode::kInvalidArgument, std::string(what) + ": " + why);
+    if (progress) {
+      o.progress = [&](const ImageProgress& p) {
+        nlohmann::json j = {{"index", p.index}, {"total", p.total}, {"file", p.file},
+                            {"corners", p.corners}, {"used", p.used}};
+        if (!p.used) j["reason"] = p.reason;
+        const std::string text = abi::to_text(j);
+        try {
+          progress(user_data, "image", text.c_str());
+        } catch (...) {  // a host's exception must not unwind through the library
+        }
+      };
+    }
     auto cal = std::make_unique<posecal_calibration>();
     cal->board = target_spec ? BoardSpec::parse(target_spec) : BoardSpec{};
     cal->images_dir = images_dir;
@@ -155,6 +171,26 @@ POSECAL_API posecal_status posecal_calibrate_images(posecal_context* ctx, const 
     *out = cal.release();
     return POSECAL_OK;
   });
+}
+
+}  // namespace
+
+POSECAL_API posecal_status posecal_calibrate_images(posecal_context* ctx, const char* images_dir,
+                                                    const char* target_spec,
+                                                    const char* options_json,
+                                                    posecal_calibration** out) noexcept {
+  return calibrate_images_with(ctx, images_dir, target_spec, options_json, nullptr, nullptr, out,
+                               __func__);
+}
+
+POSECAL_API posecal_status posecal_calibrate_images_ex(posecal_context* ctx,
+                                                       const char* images_dir,
+                                                       const char* target_spec,
+                                                       const char* options_json,
+                                                       posecal_event_fn progress, void* user_data,
+                                                       posecal_calibration** out) noexcept {
+  return calibrate_images_with(ctx, images_dir, target_spec, options_json, progress, user_data,
+                               out, __func__);
 }
 
 POSECAL_API posecal_status posecal_calibration_json(const posecal_calibration* cal, char* buf,
@@ -168,6 +204,13 @@ POSECAL_API posecal_status posecal_calibration_json(const posecal_calibration* c
     j["frames_used"] = cal->offline.used.size();
     j["frames_rejected"] = cal->offline.rejected.size();
     j["used"] = cal->offline.used;
+    j["camera_group"] = cal->offline.group;
+    nlohmann::json groups = nlohmann::json::array();
+    for (const auto& g : cal->offline.groups) {
+      groups.push_back({{"name", g.name}, {"camera", g.camera}, {"width", g.size.width},
+                        {"height", g.size.height}, {"images", g.files.size()}});
+    }
+    j["groups"] = groups;
     nlohmann::json rej = nlohmann::json::array();
     for (const auto& r : cal->offline.rejected)
       rej.push_back({{"file", r.file}, {"reason", r.reason}});

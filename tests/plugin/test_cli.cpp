@@ -118,6 +118,57 @@ TEST(Cli, CalibratesOpenCVSampleImagesLikeOpenCV) {
   EXPECT_EQ(static_cast<int>(fs_out["nr_of_frames"]), j["frames_used"].get<int>());
 }
 
+// A folder with both cameras of OpenCV's stereo samples (left01.jpg .., right01.jpg .., and
+// left.jpg / right.jpg, a 612x459 pair) was calibrated as one camera. Now it is refused naming
+// the four groups; --camera-group picks one, with a progress line per image in text mode and the
+// other images listed as not used.
+TEST(Cli, FolderOfTwoCamerasIsRefusedAndOneIsChosen) {
+  if (!fs::exists(std::string(kOpenCVData) + "/right01.jpg")) {
+    GTEST_SKIP() << "opencv-doc is not installed (apt-get install opencv-doc)";
+  }
+  const fs::path dir = fs::path(testing::TempDir()) / "posecal_left_right";
+  fs::remove_all(dir);
+  fs::create_directories(dir);
+  int copied = 0;
+  for (const auto& e : fs::directory_iterator(kOpenCVData)) {
+    const std::string name = e.path().filename().string();
+    if ((name.rfind("left", 0) == 0 || name.rfind("right", 0) == 0) &&
+        e.path().extension() == ".jpg") {
+      fs::copy_file(e.path(), dir / name);
+      ++copied;
+    }
+  }
+  ASSERT_GE(copied, 20);
+  const std::string base = "calibrate --images " + dir.string() + " --target chessboard:9x6:0.025";
+  CliRun r = run(base);
+  EXPECT_EQ(r.status, 2) << r.out;
+  EXPECT_NE(r.out.find("'left@640x480' ("), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("'right@640x480' ("), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("'left@612x459' (1 image)"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("--camera-group"), std::string::npos) << r.out;
+  r = run(base + " --camera-group left");  // two sizes of "left": ambiguous, said so
+  EXPECT_EQ(r.status, 2) << r.out;
+  EXPECT_NE(r.out.find("names more than one"), std::string::npos) << r.out;
+
+  r = run(base + " --camera-group left@640x480", true);
+  ASSERT_EQ(r.status, 0) << r.out;
+  EXPECT_NE(r.out.find("[1/"), std::string::npos) << r.out;  // progress, one line per image
+  EXPECT_NE(r.out.find("calibrated group 'left@640x480'"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("not used right01.jpg: in group 'right@640x480'"), std::string::npos)
+      << r.out;
+
+  r = run(base + " --camera-group right@640x480 --json", true);
+  ASSERT_EQ(r.status, 0) << r.out;
+  const auto j = nlohmann::json::parse(r.out);  // --json: the result document only
+  EXPECT_EQ(j["camera_group"], "right@640x480");
+  EXPECT_EQ(j["groups"].size(), 4u);
+  int left_listed = 0;
+  for (const auto& rej : j["rejected"])
+    left_listed += rej["file"].get<std::string>().rfind("left", 0) == 0;
+  EXPECT_GE(left_listed, 10);
+  for (const auto& used : j["used"]) EXPECT_EQ(used.get<std::string>().rfind("right", 0), 0u);
+}
+
 TEST(Cli, BadInputGivesMessageAndNonZeroExit) {
   CliRun r = run("calibrate --images /nonexistent/dir");
   EXPECT_EQ(r.status, 2);

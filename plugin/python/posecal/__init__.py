@@ -288,13 +288,22 @@ class Context(_Handle):
         return _fetch_json(lambda b, n: _lib.posecal_evaluate(h, r, u, o, b, n))
 
     def calibrate_images(self, images_dir: PathArg, target: Optional[str] = None,
+                         progress: Optional[Callable[[Dict[str, Any]], None]] = None,
                          **options: Any) -> Calibration:
         """Offline calibration of a folder of images; returns a Calibration.
-        options: fix_principal_point, fix_aspect_ratio, zero_tangential, fixed, min_corners."""
+        options: fix_principal_point, fix_aspect_ratio, zero_tangential, fixed, min_corners,
+        camera_group (where the folder mixes cameras or image sizes: a group's name such as
+        "left@640x480", its camera "left" or its size "640x480"; without it such a folder raises
+        InvalidArgumentError listing the groups). progress: called after each image with a dict
+        {"index", "total", "file", "corners", "used", "reason"}; an exception it raises is
+        printed by ctypes and does not stop the calibration."""
         h = ctypes.c_void_p()
-        _check(_lib.posecal_calibrate_images(self._handle(), _enc(images_dir, "images_dir"),
-                                             _enc(target, "target"), _options(options),
-                                             ctypes.byref(h)))
+        # A callback that reports nothing without `progress` (kept alive for the call).
+        callback = _native.EVENT_FN(
+            lambda _user, _kind, payload: progress(json.loads(payload)) if progress else None)
+        _check(_lib.posecal_calibrate_images_ex(self._handle(), _enc(images_dir, "images_dir"),
+                                                _enc(target, "target"), _options(options),
+                                                callback, None, ctypes.byref(h)))
         return Calibration(h)
 
     def open(self, uri: str, **config: Any) -> Session:

@@ -95,6 +95,7 @@ _PROTOTYPES = {
     "posecal_evaluate": (_status, [_p, _s, _s, _s, _c.c_char_p, _size_p]),
     "posecal_write_target": (_status, [_s, _s, _c.c_double, _c.c_double]),
     "posecal_calibrate_images": (_status, [_p, _s, _s, _s, _c.POINTER(_p)]),
+    "posecal_calibrate_images_ex": (_status, [_p, _s, _s, _s, EVENT_FN, _p, _c.POINTER(_p)]),
     "posecal_calibration_json": (_status, [_p, _c.c_char_p, _size_p]),
     "posecal_calibration_save": (_status, [_p, _s]),
     "posecal_calibration_save_as": (_status, [_p, _s, _s]),

@@ -151,6 +151,33 @@ class Calibration(unittest.TestCase):
         self.assertIsNone(ev["eps_gt"])
         self.assertLess(ev["eps_test"], 0.5)
 
+    def test_calibrate_images_of_two_cameras(self):
+        # A folder with both cameras of a stereo pair: refused naming the groups; camera_group
+        # picks one, progress reports each of its images.
+        data = "/usr/share/doc/opencv-doc/examples/data"
+        if not os.path.exists(os.path.join(data, "right01.jpg")):
+            self.skipTest("opencv-doc is not installed")
+        d = os.path.join(self.tmp.name, "stereo")
+        os.makedirs(d)
+        for name in sorted(os.listdir(data)):
+            if name.startswith(("left", "right")) and name.endswith(".jpg") and len(name) <= 11:
+                os.symlink(os.path.join(data, name), os.path.join(d, name))
+        with self.assertRaises(posecal.InvalidArgumentError) as e:
+            self.ctx.calibrate_images(d, target="chessboard:9x6:0.025")
+        self.assertIn("'left@640x480'", str(e.exception))
+        self.assertIn("'right@640x480'", str(e.exception))
+        seen = []
+        with self.ctx.calibrate_images(d, target="chessboard:9x6:0.025", camera_group="right@640x480",
+                                       progress=seen.append) as cal:
+            r = cal.result
+            self.assertEqual(r["camera_group"], "right@640x480")
+            self.assertTrue(all(f.startswith("right") for f in r["used"]))
+            self.assertTrue(any(x["file"].startswith("left") for x in r["rejected"]))
+        self.assertEqual([p["index"] for p in seen], list(range(1, len(seen) + 1)))
+        self.assertGreaterEqual(len(seen), 10)
+        self.assertTrue(all(p["total"] == len(seen) and p["file"].startswith("right")
+                            for p in seen))
+
 
 if __name__ == "__main__":
     unittest.main()
