@@ -96,9 +96,12 @@ void write_line(FILE* out, const Json& j) {
   std::fflush(out);
 }
 
-void print_error_line(const std::string& text) {
+void print_error_line(const std::string& text) { print_text_line(stderr, text); }
+
+void print_text_line(FILE* out, const std::string& text) {
   std::lock_guard<std::mutex> lock(g_out_mutex);
-  std::fprintf(stderr, "%s\n", text.c_str());
+  std::fprintf(out, "%s\n", text.c_str());
+  std::fflush(out);
 }
 
 void print_event_line(void* user, const char* kind, const char* payload) {

@@ -76,6 +76,8 @@ void write_line(FILE* out, const Json& j);
 void stamp_event(Json* j);
 // Prints a message line to stderr under the same lock as write_line.
 void print_error_line(const std::string& text);
+// Prints a text line to `out` under the same lock, flushed (progress lines of several threads).
+void print_text_line(FILE* out, const std::string& text);
 
 // Where a session's events go: one JSON line per event.
 struct EventSink {

@@ -77,10 +77,54 @@ std::string claim_file(StationShared* shared, const std::string& id) {
   return shared->options->out_dir + "/" + name + file_extension(shared->options->format);
 }
 
+// Text mode: a line for each step a person watching the station follows (keyframes, states,
+// parameters, the camera coming and going), prefixed by the camera's URI.
+void print_progress_text(void* user, const char* kind, const char* payload) {
+  const auto* sink = static_cast<const EventSink*>(user);
+  const Json p = Json::parse(payload, nullptr, false);
+  if (p.is_discarded()) return;
+  const std::string k = kind;
+  std::string what;
+  if (k == "captured") {
+    what = "keyframe " + std::to_string(p.value("keyframes", 0)) + " captured";
+  } else if (k == "state_changed") {
+    what = p.value("from", std::string("?")) + " -> " + p.value("to", std::string("?"));
+  } else if (k == "parameter_converged") {
+    what = p.value("parameter", std::string("?")) + " converged (" +
+           std::to_string(p.value("keyframes", 0)) + " keyframes)";
+  } else if (k == "camera_disconnected" || k == "camera_reconnected" || k == "error" ||
+             k == "target_skipped" || k == "keyframe_rejected") {
+    std::string name = k;
+    std::replace(name.begin(), name.end(), '_', ' ');
+    what = name + ": " + p.value("message", std::string());
+  } else {
+    return;
+  }
+  print_text_line(sink->out, sink->camera + ": " + what);
+}
+
+// Text mode, every kProgressEveryMs: where a camera is, also when no event comes (a camera that
+// does not see the board).
+constexpr double kProgressEveryMs = 10000;
+
+void print_heartbeat(posecal_session* s, const std::string& uri, double elapsed_ms) {
+  const Json st = fetch_status(s);
+  char line[96];
+  std::snprintf(line, sizeof line, "%.0f s: %lld frames, %lld keyframes, ", elapsed_ms / 1000,
+                st.value("frames", 0LL), st.value("keyframes", 0LL));
+  print_text_line(stdout, uri + ": " + line + st.value("state", std::string("?")) + ": " +
+                              st.value("guidance", std::string()));
+}
+
 void step_until_done(posecal_session* s, const StationOptions& o, const std::string& uri,
                      Clock::time_point t0) {
   int failures = 0;
+  double next_heartbeat_ms = kProgressEveryMs;
   while (ms_since(t0) < o.max_seconds * 1000) {
+    if (!o.json && ms_since(t0) >= next_heartbeat_ms) {
+      print_heartbeat(s, uri, ms_since(t0));
+      next_heartbeat_ms += kProgressEveryMs;
+    }
     if (interrupt_requested()) {
       check(posecal_session_interrupt(s));
       return;
@@ -106,8 +150,13 @@ void calibrate_one(StationShared* shared, StationJob* job, Clock::time_point t0)
   Session s(shared->ctx, job->uri, config);
   const Json camera = fetch_status(s.get())["camera"];
   out["camera"] = camera;
-  EventSink sink{stderr, job->uri};
-  if (o.events) check(posecal_session_set_callback(s.get(), print_event_line, &sink));
+  EventSink sink{o.events ? stderr : stdout, job->uri};
+  if (o.events) {
+    check(posecal_session_set_callback(s.get(), print_event_line, &sink));
+  } else if (!o.json) {
+    check(posecal_session_set_callback(s.get(), print_progress_text, &sink));
+    print_text_line(stdout, job->uri + ": calibrating camera '" + camera.value("id", "") + "'");
+  }
   step_until_done(s.get(), o, job->uri, t0);
   out["interrupted"] = interrupt_requested();
   if (!has_result(s.get())) {

@@ -163,3 +163,25 @@ TEST(CliBounded, CalibrateImagesRejectsAHugeImageAndSkipsAFifo) {
   EXPECT_TRUE(huge) << r.out;
   EXPECT_GE(j["frames_used"].get<int>(), 5) << r.out;
 }
+
+// Text-mode station was silent until the end (half a minute and more). Now each camera's steps
+// are lines as they happen, and a camera that sees nothing still says where it is every 10 s.
+TEST(CliBounded, TextModeStationShowsProgressAndAHeartbeat) {
+  const fs::path dir = fresh_dir("posecal_cli_station_text");
+  CliRun r = run("station --cameras 'sim://?seed=3' --out-dir " + (dir / "a").string(), true);
+  ASSERT_EQ(r.status, 0) << r.out;
+  for (const char* line : {"sim://?seed=3: calibrating camera 'sim-3'",
+                           "sim://?seed=3: keyframe 1 captured", "sim://?seed=3: keyframe 2 captured",
+                           "-> refining", "-> converged", " converged ("})
+    EXPECT_NE(r.out.find(line), std::string::npos) << line << "\n" << r.out;
+
+  const std::string model = (dir / "tiny.yml").string();
+  posecal::write_camera_model(
+      model, posecal::CameraModel::opencv5(64, 48, 60, 60, 31.5, 23.5, {0, 0, 0, 0, 0}));
+  r = run("station --cameras 'sim://?model=" + model + "' --out-dir " + (dir / "b").string() +
+              " --board-timeout-s 12 --max-seconds 300",
+          true);
+  EXPECT_NE(r.status, 0) << r.out;
+  EXPECT_NE(r.out.find("10 s: "), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find(" frames, 0 keyframes, waiting_for_board"), std::string::npos) << r.out;
+}
