@@ -43,6 +43,7 @@ from typing import (Any, Callable, Deque, Dict, Iterable, Iterator, List, NamedT
                     Tuple, TypeVar, Union, overload)
 
 import numpy as np
+import numpy.typing as npt
 
 from . import _native
 from ._image import Buffer, Frame, PixelFormat, from_array, host_image, new_frame
@@ -156,10 +157,16 @@ def version() -> str:
 
 
 def write_target(path: PathArg, target: Optional[str] = None, dpi: float = 300.0,
-                 margin_m: float = 0.01) -> None:
-    """Writes the printable target at exact scale (.pdf vector, .png at `dpi`)."""
-    _check(_lib.posecal_write_target(_enc(target, "target"), _enc(path, "path"), float(dpi),
-                                     float(margin_m)))
+                 margin_m: float = 0.01, paper: Optional[str] = None) -> None:
+    """Writes the printable target at exact scale: .pdf (vector) or .png at `dpi`
+    (docs/board.md). paper: None or "board" (a page of the board's size), "a4", "a3" or
+    "letter" (the board on such sheets, tiled with cut marks when it does not fit one; each
+    page with the specification, a 100 mm ruler and "print at 100 %"); PDF only."""
+    options: Dict[str, Any] = {"dpi": float(dpi), "margin_m": float(margin_m)}
+    if paper is not None:
+        options["paper"] = paper
+    _check(_lib.posecal_write_target_ex(_enc(target, "target"), _enc(path, "path"),
+                                        json.dumps(options).encode("utf-8")))
 
 
 class Event(NamedTuple):
@@ -451,15 +458,15 @@ class Session(_Handle):
         img.write_back()
         return image if isinstance(image, np.ndarray) and array else None
 
-    def expected_error_map(self, width: int = 40, height: int = 23) -> List[List[float]]:
+    def expected_error_map(self, width: int = 40, height: int = 23) -> npt.NDArray[np.float32]:
         """The predicted RMS projection error in pixels at width x height points from image edge
-        to image edge (posecal_session_expected_error_map), as a list of `height` rows of
-        `width` floats (NaN where the lens has no ray). Raises StateError before the second
-        keyframe."""
-        values = (ctypes.c_float * (width * height))()
-        _check(_lib.posecal_session_expected_error_map(self._handle(), values, int(width),
-                                                       int(height), 0))
-        return [list(values[j * width:(j + 1) * width]) for j in range(height)]
+        to image edge (posecal_session_expected_error_map), as a (height, width) float32 array
+        (NaN where the lens has no ray). Raises StateError before the second keyframe."""
+        grid = np.empty((int(height), int(width)), dtype=np.float32)
+        _check(_lib.posecal_session_expected_error_map(
+            self._handle(), grid.ctypes.data_as(ctypes.POINTER(ctypes.c_float)), int(width),
+            int(height), 0))
+        return grid
 
     # ---- robot mode -----------------------------------------------------------------------
     def pose_reached(self) -> None:

@@ -94,6 +94,7 @@ _PROTOTYPES = {
     "posecal_camera_grab": (_status, [_p, _s, _c.c_int, _s, _c.c_int, _c.c_char_p, _size_p]),
     "posecal_evaluate": (_status, [_p, _s, _s, _s, _c.c_char_p, _size_p]),
     "posecal_write_target": (_status, [_s, _s, _c.c_double, _c.c_double]),
+    "posecal_write_target_ex": (_status, [_s, _s, _s]),
     "posecal_calibrate_images": (_status, [_p, _s, _s, _s, _c.POINTER(_p)]),
     "posecal_calibrate_images_ex": (_status, [_p, _s, _s, _s, EVENT_FN, _p, _c.POINTER(_p)]),
     "posecal_calibration_json": (_status, [_p, _c.c_char_p, _size_p]),

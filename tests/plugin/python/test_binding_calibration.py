@@ -56,8 +56,9 @@ class Calibration(unittest.TestCase):
             self.assertAlmostEqual(s.status["expected_error_px"], r["expected_error_px"], places=9)
             self.assertAlmostEqual(s.status["expected_error_p90_px"], r["expected_error_p90_px"], places=9)
             grid = s.expected_error_map()
-            self.assertEqual((len(grid), len(grid[0])), (23, 40))
-            rms = (sum(v * v for row in grid for v in row) / (40 * 23)) ** 0.5
+            self.assertEqual((grid.shape, grid.dtype), ((23, 40), np.float32))
+            rms = float(np.sqrt(np.mean(grid.astype(np.float64) ** 2)))
+            self.assertEqual(s.expected_error_map(8, 5).shape, (5, 8))
             self.assertAlmostEqual(rms, r["expected_error_px"], delta=1e-5 * rms)
         # The saved file, evaluated on the same simulated camera, gives the session's errors.
         ev = self.ctx.evaluate(yml, "sim://?seed=5")
@@ -144,6 +145,19 @@ class Calibration(unittest.TestCase):
             self.assertGreaterEqual(r["frames_used"], 10)
             self.assertLess(r["rms"], 0.5)
             cal.save(os.path.join(self.tmp.name, "left.yml"))
+            # The other formats by name (docs/formats.md), read back as text.
+            for fmt, name, key in (("ros", "left_ros.yaml", "distortion_model: plumb_bob"),
+                                   ("mrcal", "left.cameramodel", "LENSMODEL_OPENCV5"),
+                                   ("opencv", "left.json", '"camera_matrix"')):
+                path = os.path.join(self.tmp.name, name)
+                cal.save(path, format=fmt)
+                with open(path) as f:
+                    self.assertIn(key, f.read(), fmt)
+            # A format that cannot hold the model (Kalibr's radtan has no k3) or none at all.
+            for fmt in ("kalibr", "matlab"):
+                with self.assertRaises(posecal.InvalidArgumentError):
+                    cal.save(os.path.join(self.tmp.name, "x.yml"), format=fmt)
+                self.assertFalse(os.path.exists(os.path.join(self.tmp.name, "x.yml")))
         ev = self.ctx.evaluate(os.path.join(self.tmp.name, "left.yml"), "images://" + d,
                                target="chessboard:9x6:0.025", frames=30)
         self.assertEqual(ev["source"], "camera")

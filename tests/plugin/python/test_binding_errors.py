@@ -137,6 +137,14 @@ class Errors(unittest.TestCase):
         board = os.path.join(self.tmp.name, "board.png")
         posecal.write_target(board, dpi=100)
         self.assertTrue(os.path.getsize(board) > 1000)
+        a4 = os.path.join(self.tmp.name, "board_a4.pdf")
+        posecal.write_target(a4, paper="a4")
+        with open(a4, "rb") as f:
+            self.assertEqual(f.read(5), b"%PDF-")
+        self.assertError(posecal.InvalidArgumentError, errors.E_INVALID_ARGUMENT,
+                         posecal.write_target, board, paper="a4")  # a paper size is PDF only
+        self.assertError(posecal.InvalidArgumentError, errors.E_INVALID_ARGUMENT,
+                         posecal.write_target, a4, paper="a5")
         self.assertError(posecal.InvalidArgumentError, errors.E_INVALID_ARGUMENT,
                          posecal.write_target, board, target="charuco:9x6")
 
