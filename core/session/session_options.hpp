@@ -18,6 +18,7 @@ struct SessionOptions {
   std::string journal;        // the session journal's path ("" = none; session/journal.hpp)
   bool journal_images = false;
   bool resume = true;         // resume an existing journal (false: set it aside, start afresh)
+  std::string spec;           // a quality specification's path ("" = none; plugin/src/quality_gate)
   bool is_valid(std::string* error) const { return engine.is_valid(error); }
 };
 

@@ -196,12 +196,26 @@ Json summary(const Json& result, double wall_ms) {
     j[k] = result.value(k, Json());
   }
   for (const char* k : {"eps_test", "eps_gt", "ground_truth", "operator_attempts", "failure", "journal",
-                        "resumed_keyframes", "resume_identical", "journal_note"}) {
+                        "resumed_keyframes", "resume_identical", "journal_note", "seconds",
+                        "verdict", "verdict_reasons", "spec"}) {
     if (result.contains(k)) j[k] = result[k];
   }
   j["camera"] = result.value("camera", Json());
   j["wall_ms"] = wall_ms;
   return j;
+}
+
+int calibration_exit_code(const Json& j) {
+  if (!j.value("converged", false)) return kNotConverged;
+  return j.value("verdict", "") == "fail" ? kSpecFailed : kOk;
+}
+
+void print_verdict(const Json& j) {
+  if (!j.contains("verdict")) return;
+  std::printf("quality spec %s: %s\n", j.value("spec", std::string()).c_str(),
+              j.value("verdict", "") == "pass" ? "PASS" : "FAIL");
+  for (const auto& r : j.value("verdict_reasons", Json::array()))
+    if (r.is_string()) std::printf("  %s\n", r.get<std::string>().c_str());
 }
 
 double num_or(const Json& j, const std::string& key, double def) {

@@ -18,7 +18,8 @@ namespace posecal::cli {
 using Json = nlohmann::json;
 using Clock = std::chrono::steady_clock;
 
-enum Exit { kOk = 0, kUsage = 1, kFailure = 2, kNotConverged = 3 };
+// 4: converged, but the result fails the quality specification (--spec).
+enum Exit { kOk = 0, kUsage = 1, kFailure = 2, kNotConverged = 3, kSpecFailed = 4 };
 
 // A usage error found after parsing (e.g. two options that exclude each other): exit code 1.
 struct UsageError {
@@ -87,6 +88,12 @@ struct EventSink {
 
 // posecal_event_fn for an EventSink.
 void print_event_line(void* user, const char* kind, const char* payload);
+
+// The exit code of a finished calibration's summary or result: kNotConverged, kSpecFailed when
+// it converged but its quality verdict is "fail", else kOk.
+int calibration_exit_code(const Json& j);
+// Text mode: the quality verdict line(s), if the result has a verdict.
+void print_verdict(const Json& j);
 
 // The summary every calibration command prints with --json; the intrinsics are the result's
 // covariance_order (whatever the lens model's parameters are).

@@ -46,6 +46,7 @@ void print_images_result(const CalibrateOptions& o, const Json& j) {
     std::printf("  not used %s: %s\n", r["file"].get<std::string>().c_str(),
                 r["reason"].get<std::string>().c_str());
   }
+  print_verdict(j);
   if (!o.out.empty()) std::printf("written %s\n", o.out.c_str());
 }
 
@@ -69,6 +70,8 @@ int calibrate_images(const CalibrateOptions& o) {
   const std::string target = o.session->config().value("target", "");
   posecal_calibration* cal = nullptr;
   if (!o.camera_group.empty()) opts["camera_group"] = o.camera_group;
+  const std::string spec = o.session->config().value("spec", "");
+  if (!spec.empty()) opts["spec"] = spec;
   // Text mode: one progress line per image as it is done (a long folder is not silent); --json
   // prints the one result document only.
   const posecal_event_fn progress = o.json ? nullptr : print_image_progress;
@@ -87,7 +90,7 @@ int calibrate_images(const CalibrateOptions& o) {
   } else {
     print_images_result(o, j);
   }
-  return kOk;
+  return j.value("verdict", "") == "fail" ? kSpecFailed : kOk;
 }
 
 // ---- --camera ----
@@ -172,10 +175,11 @@ int report_live(posecal_session* s, const CalibrateOptions& o, bool robot, const
                 : j["converged"].get<bool>() ? "converged"
                                              : "NOT converged",
                 j["keyframes"].get<int>(), num_or(j, "eps_res", -1));
+    print_verdict(j);
     if (!o.out.empty()) std::printf("written %s\n", o.out.c_str());
   }
   if (run.interrupted) return interrupt_exit_code();
-  return j["converged"].get<bool>() ? kOk : kNotConverged;
+  return calibration_exit_code(j);
 }
 
 int calibrate_camera(const CalibrateOptions& o) {

@@ -68,6 +68,7 @@ void print_text_summary(const SimulateOptions& o, const Json& j, double wall_ms)
     std::printf("  %-3s = %14.6f  +- %.6f   (true %.6f)\n", k.c_str(), num_or(j, k, NAN),
                 num_or(j["std"], k, NAN), num_or(truth, k, NAN));
   }
+  print_verdict(j);
   if (!o.out.empty()) std::printf("written %s\n", o.out.c_str());
 }
 
@@ -103,7 +104,7 @@ int run_simulate(const SimulateOptions& o) {
     print_text_summary(o, j, wall_ms);
   }
   if (j.value("interrupted", false)) return interrupt_exit_code();
-  return j["converged"].get<bool>() ? kOk : kNotConverged;
+  return calibration_exit_code(j);
 }
 
 }  // namespace

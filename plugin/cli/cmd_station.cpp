@@ -182,9 +182,11 @@ void calibrate_one(StationShared* shared, StationJob* job, Clock::time_point t0)
   out["journal"] = result.value("journal", Json());
   out["resumed_keyframes"] = result.value("resumed_keyframes", 0);
   out["resume_identical"] = result.value("resume_identical", Json());
+  for (const char* k : {"verdict", "verdict_reasons", "spec"})
+    if (result.contains(k)) out[k] = result[k];
   out["file"] = file;
   out["error"] = nullptr;
-  job->exit = out["converged"].get<bool>() ? kOk : kNotConverged;
+  job->exit = calibration_exit_code(out);
   if (out["interrupted"].get<bool>()) job->exit = kInterrupted;
 }
 
@@ -227,6 +229,13 @@ void print_station_text(const Json& sum, const std::string& sum_path) {
                                        : "NOT converged",
         o["keyframes"].get<int>(),
         num_or(o, "eps_res", -1), eps_test, o["file"].get<std::string>().c_str());
+    if (o.contains("verdict")) {
+      std::string reasons;
+      for (const auto& r : o.value("verdict_reasons", Json::array()))
+        if (r.is_string()) reasons += "; " + r.get<std::string>();
+      std::printf("%-40s quality spec: %s%s\n", "", o.value("verdict", "") == "pass" ? "PASS" : "FAIL",
+                  reasons.c_str());
+    }
   }
   std::printf("%d of %d cameras converged in %.1f s%s; summary in %s\n",
               sum["converged"].get<int>(), sum["total"].get<int>(),
@@ -264,18 +273,23 @@ Json run_cameras(const StationOptions& o, const std::vector<std::string>& uris, 
     for (auto& t : threads) t.join();
   }
   Json cams = Json::array();
-  int converged = 0, interrupted = 0;
+  int converged = 0, interrupted = 0, passed = 0, judged = 0;
   *exit = kOk;
   for (const auto& j : jobs) {
     cams.push_back(j.outcome);
-    if (j.exit == kOk) ++converged;
+    if (j.exit == kOk || j.exit == kSpecFailed) ++converged;
     if (j.exit == kInterrupted) ++interrupted;
     if (j.exit == kFailure) *exit = kFailure;  // a failed camera outweighs unconverged ones
-    if (j.exit == kNotConverged && *exit == kOk) *exit = kNotConverged;
+    if (j.exit == kNotConverged && (*exit == kOk || *exit == kSpecFailed)) *exit = kNotConverged;
+    if (j.exit == kSpecFailed && *exit == kOk) *exit = kSpecFailed;
+    if (j.outcome.value("verdict", "") == "pass") ++passed;
+    if (j.outcome.contains("verdict")) ++judged;
   }
   return {{"cameras", cams},        {"total", jobs.size()},
           {"converged", converged}, {"all_converged", converged == static_cast<int>(jobs.size())},
           {"interrupted", interrupted}, {"out_dir", o.out_dir},
+          // With a quality spec: the cameras whose result passed it (null without one).
+          {"passed", judged > 0 ? Json(passed) : Json(nullptr)},
           {"wall_ms", ms_since(t0)}};
 }
 

@@ -173,7 +173,8 @@ typedef struct posecal_calibration posecal_calibration;
  * options_json: NULL or an object with optional keys "fix_principal_point", "fix_aspect_ratio",
  * "zero_tangential" (bool), "fixed" (array of parameter names), "min_corners" (int >= 4),
  * "camera_group" (a group's name "left@640x480", its camera "left" or its size "640x480", where
- * that names one group). Unreadable images, the other groups' images and images without the
+ * that names one group), "spec" (a quality specification file: the result gets a verdict, as a
+ * session's). Unreadable images, the other groups' images and images without the
  * target are listed in the result with the reason, not fatal. Blocks for the whole calibration
  * (detection ~50 ms per image plus a solve of well under a second for 20 images). */
 POSECAL_API posecal_status posecal_calibrate_images(posecal_context* ctx, const char* images_dir,
@@ -278,7 +279,10 @@ typedef struct posecal_image {
  *   naming what differs; a journal cut by a kill resumes from its last complete record and
  *   "journal_note" says so), "journal_images" (false; true: the journal also keeps each
  *   keyframe's image as PNG), "resume" (true; false: an existing journal is renamed to
- *   JOURNAL.<UTC time>.old and a new one started). docs/c-api.md, "Journal".
+ *   JOURNAL.<UTC time>.old and a new one started). docs/c-api.md, "Journal";
+ *   "spec" (unset; a JSON file of quality limits, read at open: the result gets "verdict"
+ *   "pass"/"fail" and "verdict_reasons"; a malformed file is POSECAL_E_INVALID_ARGUMENT naming
+ *   the file and the key; docs/c-api.md, "Quality gate").
  * An unknown key is POSECAL_E_INVALID_ARGUMENT. Opening a camera may block up to ~3 s. The
  * camera starts streaming at the first posecal_session_step. */
 POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char* camera_uri,

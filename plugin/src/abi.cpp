@@ -1,12 +1,16 @@
 // Exported entry points of libposecal.so (plugin/include/posecal.h). Each one is a thin shell:
 // validate the C arguments, call core, and let abi::guarded() turn exceptions into statuses.
+#include <chrono>
 #include <memory>
 #include <mutex>
+#include <optional>
 
 #include "abi_common.hpp"
 #include "context.hpp"
 #include "json_report.hpp"
+#include "lens/lens_models.hpp"
 #include "posecal.h"
+#include "quality_gate.hpp"
 #include "calib/offline.hpp"
 
 using namespace posecal;
@@ -17,6 +21,8 @@ struct posecal_calibration {
   OfflineCalibration offline;
   BoardSpec board;
   std::string images_dir;
+  double seconds = 0;  // the whole offline calibration's wall time
+  std::optional<abi::QualitySpec> spec;
 };
 
 namespace {
@@ -139,7 +145,7 @@ posecal_status calibrate_images_with(posecal_context* ctx, const char* images_di
     const auto opts = abi::parse_options(options_json,
                                          {"fix_principal_point", "fix_aspect_ratio",
                                           "zero_tangential", "fixed", "min_corners",
-                                          "camera_group"},
+                                          "camera_group", "spec"},
                                          "calibration options");
     const char* what = "calibration options";
     OfflineOptions o;
@@ -165,9 +171,14 @@ posecal_status calibrate_images_with(posecal_context* ctx, const char* images_di
       };
     }
     auto cal = std::make_unique<posecal_calibration>();
+    const std::string spec = abi::get_string(opts, "spec", "", what);
+    // Read before the images: a malformed specification costs no calibration.
+    if (!spec.empty()) cal->spec = abi::read_quality_spec(spec, intrinsic_names(LensModel::kOpenCV5));
     cal->board = target_spec ? BoardSpec::parse(target_spec) : BoardSpec{};
     cal->images_dir = images_dir;
+    const auto t0 = std::chrono::steady_clock::now();
     cal->offline = calibrate_images(images_dir, cal->board, o);
+    cal->seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
     *out = cal.release();
     return POSECAL_OK;
   });
@@ -211,6 +222,13 @@ POSECAL_API posecal_status posecal_calibration_json(const posecal_calibration* c
                         {"height", g.size.height}, {"images", g.files.size()}});
     }
     j["groups"] = groups;
+    j["seconds"] = abi::number(cal->seconds);
+    if (cal->spec) {
+      // An offline calibration has no ratio test: "converged" is the solver's.
+      j["converged"] = j.value("solver_converged", false);
+      j.update(abi::quality_verdict(*cal->spec, j, static_cast<int>(cal->offline.used.size()),
+                                    cal->seconds));
+    }
     nlohmann::json rej = nlohmann::json::array();
     for (const auto& r : cal->offline.rejected)
       rej.push_back({{"file", r.file}, {"reason", r.reason}});

@@ -17,6 +17,8 @@
 #include "context.hpp"
 #include "evaluation.hpp"
 #include "json_report.hpp"
+#include "lens/lens_models.hpp"
+#include "quality_gate.hpp"
 #include "session_config.hpp"
 #include "posecal.h"
 #include "session/session.hpp"
@@ -39,6 +41,11 @@ struct posecal_session {
   posecal_event_fn fn = nullptr;
   void* user_data = nullptr;
   std::string started, finished;
+  // Wall time from the open to the finish (the quality gate's max_seconds).
+  std::chrono::steady_clock::time_point opened = std::chrono::steady_clock::now();
+  std::optional<double> finished_seconds;
+  // The "spec" key's quality specification, if any: the result's verdict.
+  std::optional<abi::QualitySpec> spec;
   // sim:// only: the fixed test set, rendered once, and the evaluation of the last result.
   std::vector<Observation> test_set;
   int evaluated_keyframes = -1;
@@ -65,10 +72,16 @@ void check_running(const posecal_session* s) {
   if (s->interrupted) throw Error(ErrorCode::kState, "the calibration was interrupted");
 }
 
+void mark_finished(posecal_session* s) {
+  s->finished = utc_now_iso8601();
+  s->finished_seconds =
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - s->opened).count();
+}
+
 // Interrupted before it finished by itself; the finish time is the first look after that.
 bool was_interrupted(posecal_session* s) {
   if (!s->interrupted || s->session->finished()) return false;
-  if (s->finished.empty()) s->finished = utc_now_iso8601();
+  if (s->finished.empty()) mark_finished(s);
   return true;
 }
 
@@ -190,7 +203,7 @@ void deliver(posecal_session* s, const SessionEvent& e) {
 }
 
 void note_finished(posecal_session* s) {
-  if (s->session->finished() && s->finished.empty()) s->finished = utc_now_iso8601();
+  if (s->session->finished() && s->finished.empty()) mark_finished(s);
 }
 
 Json status_json(posecal_session* s) {
@@ -327,6 +340,14 @@ POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char
     } else {
       camera = ctx->impl->open(camera_uri, eo.board);
     }
+    if (!so_config.spec.empty()) {
+      // Read before the camera streams: a malformed specification costs no calibration.
+      std::vector<std::string> names;
+      for (LensModel m : lens_models())
+        for (const std::string& n : intrinsic_names(m))
+          if (std::find(names.begin(), names.end(), n) == names.end()) names.push_back(n);
+      s->spec = abi::read_quality_spec(so_config.spec, names);
+    }
     s->external = uri.scheme == "external";
     s->camera = camera->info();
     s->session = std::make_unique<CalibrationSession>(std::move(camera), eo, lock);
@@ -334,7 +355,7 @@ POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char
       // The config a journal is resumed with must be the one it was recorded with, but for
       // the journal's own keys.
       Json recorded = c;
-      for (const char* k : {"journal", "journal_images", "resume"}) recorded.erase(k);
+      for (const char* k : {"journal", "journal_images", "resume", "spec"}) recorded.erase(k);
       s->session->open_journal(so_config.journal, abi::to_text(recorded), so_config.journal_images,
                                so_config.resume);
     }
@@ -544,6 +565,9 @@ POSECAL_API posecal_status posecal_session_result(posecal_session* session, char
     j["locked_settings"] = session->session->locked_settings();
     j["started"] = session->started;
     j["finished"] = session->finished.empty() ? Json(nullptr) : Json(session->finished);
+    const double seconds = session->finished_seconds.value_or(
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - session->opened).count());
+    j["seconds"] = abi::number(seconds);
     Json conv = Json::object();
     for (const auto& p : eng.parameters()) conv[p.name] = p.converged;
     j["parameter_converged"] = conv;
@@ -564,6 +588,7 @@ POSECAL_API posecal_status posecal_session_result(posecal_session* session, char
         att[kind] = {{"attempts", a.attempts}, {"reached", a.reached}};
       j["operator_attempts"] = att;
     }
+    if (session->spec) j.update(abi::quality_verdict(*session->spec, j, eng.keyframes(), seconds));
     return abi::copy_out(abi::to_text(j), buf, size);
   });
 }

@@ -167,6 +167,16 @@ TEST(Cli, FolderOfTwoCamerasIsRefusedAndOneIsChosen) {
     left_listed += rej["file"].get<std::string>().rfind("left", 0) == 0;
   EXPECT_GE(left_listed, 10);
   for (const auto& used : j["used"]) EXPECT_EQ(used.get<std::string>().rfind("right", 0), 0u);
+
+  // The quality gate offline: a residual limit these photos cannot meet, exit 4.
+  const fs::path spec = dir / "spec.json";
+  std::ofstream(spec) << R"({"max_eps_res_px": 0.01, "max_keyframes": 100})";
+  r = run(base + " --camera-group right@640x480 --json --spec " + spec.string(), true);
+  EXPECT_EQ(r.status, 4) << r.out;
+  const auto v = nlohmann::json::parse(r.out);
+  EXPECT_EQ(v["verdict"], "fail");
+  ASSERT_EQ(v["verdict_reasons"].size(), 1u) << v["verdict_reasons"].dump();
+  EXPECT_EQ(v["verdict_reasons"][0].get<std::string>().rfind("eps_res ", 0), 0u);
 }
 
 TEST(Cli, BadInputGivesMessageAndNonZeroExit) {
@@ -962,4 +972,83 @@ TEST(Cli, FormatOfTheStationFiles) {
   const std::string file = j["cameras"][0]["file"].get<std::string>();
   EXPECT_EQ(fs::path(file).filename().string(), "sim-3.cameramodel");
   EXPECT_EQ(posecal::read_model_file(file).format, posecal::ModelFormat::kMrcal);
+}
+
+namespace {
+
+std::string write_spec(const std::string& dir, const std::string& name, const std::string& text) {
+  const std::string path = dir + "/" + name;
+  std::ofstream(path) << text;
+  return path;
+}
+
+}  // namespace
+
+// The quality gate (issue 15 item 3): a specification the simulated C525 family passes and one
+// it fails, with the reasons and exit codes; a malformed one refused naming the key, before any
+// frame.
+TEST(Cli, QualitySpecGivesAVerdictWithReasonsAndExitCodes) {
+  const std::string dir = temp_dir("posecal_quality_spec");
+  // The family: sim:// cameras sampled around the C525 (fx 920-1100 px, cx 520-680 px).
+  const std::string pass = write_spec(dir, "pass.json", R"({
+    "max_expected_error_px": 0.6, "max_eps_res_px": 0.5, "max_keyframes": 15,
+    "max_seconds": 300,
+    "parameters": {"fx": {"nominal": 1030, "tolerance": 0.25},
+                   "cx": {"nominal": 640, "tolerance": 0.25}}})");
+  const std::string fail = write_spec(dir, "fail.json", R"({
+    "max_expected_error_px": 0.05, "max_keyframes": 3,
+    "parameters": {"fx": {"nominal": 1030, "tolerance": 0.25},
+                   "k1": {"nominal": 0.5, "tolerance_abs": 0.05}}})");
+  for (const int seed : {1, 2}) {
+    const std::string base = "simulate --seed " + std::to_string(seed) + " --json --spec ";
+    CliRun r = run(base + pass, true);
+    ASSERT_EQ(r.status, 0) << r.out;
+    auto j = nlohmann::json::parse(r.out);
+    EXPECT_EQ(j["verdict"], "pass") << j["verdict_reasons"].dump();
+    EXPECT_TRUE(j["verdict_reasons"].empty());
+    EXPECT_EQ(j["spec"], pass);
+
+    r = run(base + fail, true);
+    EXPECT_EQ(r.status, 4) << r.out;  // converged, but the specification failed
+    j = nlohmann::json::parse(r.out);
+    EXPECT_EQ(j["verdict"], "fail");
+    const std::string reasons = j["verdict_reasons"].dump();
+    EXPECT_NE(reasons.find("expected_error_px"), std::string::npos) << reasons;
+    EXPECT_NE(reasons.find("keyframes"), std::string::npos) << reasons;
+    EXPECT_NE(reasons.find("k1"), std::string::npos) << reasons;
+    EXPECT_EQ(reasons.find("fx"), std::string::npos) << reasons;  // within its tolerance
+  }
+  // Text mode says it too.
+  CliRun r = run("simulate --seed 1 --spec " + fail);
+  EXPECT_EQ(r.status, 4);
+  EXPECT_NE(r.out.find("quality spec " + fail + ": FAIL"), std::string::npos) << r.out;
+
+  // A station: each camera's verdict in the summary, the count that passed, exit code 4.
+  r = run("station --cameras 'sim://?seed=1,sim://?seed=2' --out-dir " + dir + "/station --json --spec " +
+              fail,
+          true);
+  EXPECT_EQ(r.status, 4) << r.out;
+  auto sum = nlohmann::json::parse(r.out);
+  EXPECT_EQ(sum["converged"], 2);
+  EXPECT_EQ(sum["passed"], 0);
+  for (const auto& c : sum["cameras"]) EXPECT_EQ(c["verdict"], "fail") << c.dump();
+
+  // Malformed specifications: exit 2, the file and the key named.
+  for (const auto& [name, text, named] :
+       {std::tuple<std::string, std::string, std::string>{"unknown.json", R"({"max_error": 1})",
+                                                           "unknown key 'max_error'"},
+        {"param.json", R"({"parameters": {"k9": {"nominal": 1, "tolerance": 0.1}}})",
+         "'parameters.k9'"},
+        {"negative.json", R"({"max_eps_res_px": -1})", "'max_eps_res_px' must be a positive"},
+        {"notol.json", R"({"parameters": {"fx": {"nominal": 1000}}})", "needs 'tolerance'"},
+        {"broken.json", R"({"max_eps_res_px": )", "not valid JSON"}}) {
+    const std::string path = write_spec(dir, name, text);
+    r = run("simulate --seed 1 --spec " + path);
+    EXPECT_EQ(r.status, 2) << name << ": " << r.out;
+    EXPECT_NE(r.out.find(named), std::string::npos) << name << ": " << r.out;
+    EXPECT_NE(r.out.find(path), std::string::npos) << name << ": " << r.out;
+  }
+  r = run("simulate --seed 1 --spec " + dir + "/missing.json");
+  EXPECT_EQ(r.status, 2) << r.out;
+  EXPECT_NE(r.out.find("does not exist"), std::string::npos) << r.out;
 }

@@ -301,7 +301,8 @@ class Context(_Handle):
         options: fix_principal_point, fix_aspect_ratio, zero_tangential, fixed, min_corners,
         camera_group (where the folder mixes cameras or image sizes: a group's name such as
         "left@640x480", its camera "left" or its size "640x480"; without it such a folder raises
-        InvalidArgumentError listing the groups). progress: called after each image with a dict
+        InvalidArgumentError listing the groups), spec (a quality specification file: the
+        result gets "verdict" and "verdict_reasons"). progress: called after each image with a dict
         {"index", "total", "file", "corners", "used", "reason"}; an exception it raises is
         printed by ctypes and does not stop the calibration."""
         h = ctypes.c_void_p()
@@ -319,7 +320,7 @@ class Context(_Handle):
         jaccard_threshold, still_motion_px, constraint_factor, target_timeout_frames,
         pose_candidates, lock_settings, max_tilt_deg, fixed, convergence_measure,
         measured_convergence, candidate_score, view_candidates, view_must_serve_target,
-        board_timeout_s, accuracy_px, journal, journal_images, resume."""
+        board_timeout_s, accuracy_px, journal, journal_images, resume, spec."""
         return Session(self, uri, **config)
 
 
