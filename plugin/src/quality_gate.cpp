@@ -73,11 +73,18 @@ ParameterLimit parameter_limit(const std::string& path, const std::string& name,
 
 QualitySpec read_quality_spec(const std::string& path,
                               const std::vector<std::string>& parameter_names) {
-  const std::string text = read_file_bounded(path);
+  return parse_quality_spec(read_file_bounded(path), path, parameter_names);
+}
+
+QualitySpec parse_quality_spec(const std::string& text, const std::string& path,
+                               const std::vector<std::string>& parameter_names) {
+  if (text.size() > static_cast<size_t>(kMaxSpecFileBytes))
+    bad_spec(path, "larger than the limit of " + std::to_string(kMaxSpecFileBytes) + " bytes");
   nlohmann::json j;
   try {
     j = nlohmann::json::parse(text);
-  } catch (const nlohmann::json::parse_error& e) {
+  } catch (const nlohmann::json::exception& e) {
+    // parse_error, and out_of_range for a number beyond a double (found by fuzz_quality_spec).
     bad_spec(path, std::string("not valid JSON: ") + e.what());
   }
   if (!j.is_object()) bad_spec(path, "must be a JSON object");

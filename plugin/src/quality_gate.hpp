@@ -34,6 +34,9 @@ inline constexpr long long kMaxSpecFileBytes = 64 * 1024;
 // Error(kNotFound) / kIo when it cannot be read.
 QualitySpec read_quality_spec(const std::string& path,
                               const std::vector<std::string>& parameter_names);
+// The same from the file's text (`path` only names it in errors; fuzz_quality_spec).
+QualitySpec parse_quality_spec(const std::string& text, const std::string& path,
+                               const std::vector<std::string>& parameter_names);
 
 // The verdict of a calibration result (the JSON of posecal_session_result or
 // posecal_calibration_json: "converged", "interrupted", "expected_error_px", "eps_res" and the
