@@ -369,6 +369,19 @@ cv::Mat shrink_for_search(const cv::Mat& gray, int k) {
   return small;
 }
 
+// The contours of the dark blobs of `gray` and of their holes, as OpenCV's marker search finds
+// them at one scale: adaptive threshold (mean of a `window` square, less `constant`), every
+// contour point kept (its length is the contour's perimeter as OpenCV counts it).
+std::vector<std::vector<cv::Point>> threshold_contours(const cv::Mat& gray, int window,
+                                                       double constant) {
+  cv::Mat bin;
+  cv::adaptiveThreshold(gray, bin, 255, cv::ADAPTIVE_THRESH_MEAN_C, cv::THRESH_BINARY_INV, window,
+                        constant);
+  std::vector<std::vector<cv::Point>> contours;
+  cv::findContours(bin, contours, cv::RETR_LIST, cv::CHAIN_APPROX_NONE);
+  return contours;
+}
+
 // Candidate marker quads of one adaptive-threshold scale, tested as OpenCV 4.6's marker search
 // tests its contours: a closed contour of [min_len, max_len] points (its perimeter, as OpenCV
 // counts it) whose polygonal approximation (tolerance `accuracy` x its length) is a convex
@@ -386,14 +399,9 @@ struct QuadTest {
 // `perimeters`, their lengths too. The length test comes first: most contours of a frame of noise
 // or clutter are shorter than a marker, and approxPolyDP is the costly part.
 int count_quads(const cv::Mat& gray, const QuadTest& t, int stop_at, std::vector<int>* perimeters) {
-  cv::Mat bin;
-  cv::adaptiveThreshold(gray, bin, 255, cv::ADAPTIVE_THRESH_MEAN_C, cv::THRESH_BINARY_INV, t.window,
-                        t.constant);
-  std::vector<std::vector<cv::Point>> contours;
-  cv::findContours(bin, contours, cv::RETR_LIST, cv::CHAIN_APPROX_NONE);
   int n = 0;
   std::vector<cv::Point> poly;
-  for (const auto& c : contours) {
+  for (const auto& c : threshold_contours(gray, t.window, t.constant)) {
     const int len = static_cast<int>(c.size());
     if (len < t.min_len || len > t.max_len) continue;
     cv::approxPolyDP(c, poly, len * t.accuracy, true);
@@ -405,8 +413,8 @@ int count_quads(const cv::Mat& gray, const QuadTest& t, int stop_at, std::vector
       const cv::Point d = p - poly[(j + 1) % 4];
       quad =
           static_cast<double>(d.x) * d.x + static_cast<double>(d.y) * d.y >= min_side * min_side &&
-          p.x >= t.border && p.y >= t.border && p.x < bin.cols - t.border &&
-          p.y < bin.rows - t.border;
+          p.x >= t.border && p.y >= t.border && p.x < gray.cols - t.border &&
+          p.y < gray.rows - t.border;
     }
     if (!quad) continue;
     if (perimeters) perimeters->push_back(len);
@@ -465,6 +473,34 @@ void cap_candidate_quads(const cv::Mat& search, int cap, cv::aruco::DetectorPara
       std::max(params->minMarkerPerimeterRate, (keep_from + 0.5) / max_side);
 }
 
+// DetectorOptions::max_candidate_quads for a board of `squares` squares: never below twice them,
+// so that a large board does not push its own markers out; 0 when the cap is off.
+int quad_cap(const DetectorOptions& options, int squares) {
+  return options.max_candidate_quads > 0 ? std::max(options.max_candidate_quads, 2 * squares) : 0;
+}
+
+// Chessboard, issue 16: OpenCV's chessboard search links the quads it finds pairwise, at each of
+// its thresholds and dilations, and when no board is found it tries them all: a 1280x720 frame
+// of uniform noise took 0.8-1.4 s, a checkerboard texture of 14 px squares 5.3 s, of 20 px 1.2 s,
+// strong sensor noise (sigma 40-80 grey levels, no board) 0.2-1.0 s, where a board frame takes
+// 3-15 ms. Such frames show many blobs of a chessboard square's size (8 px and more): contours of
+// at least kBusyMinPoints points at half size, at the marker pre-count's threshold. Measured
+// there: noise 1358, the 14 px checkerboard 2251, sensor noise of sigma 20-80 1200-1300; board
+// frames 72-140 up to sigma 10 (a textured background included). Above `cap` of them the frame is
+// searched on a half-size copy like a large frame (corners refined at full resolution).
+constexpr int kBusyMinPoints = 16;
+constexpr int kHalfSizeWindow = 7;        // OpenCV's middle marker-search window (13) at half size
+constexpr double kThresholdConstant = 7;  // OpenCV's adaptiveThreshConstant
+
+bool busy_for_chessboard(const cv::Mat& gray, int cap) {
+  int n = 0;
+  for (const auto& c :
+       threshold_contours(shrink_for_search(gray, 2), kHalfSizeWindow, kThresholdConstant)) {
+    if (static_cast<int>(c.size()) >= kBusyMinPoints && ++n > cap) return true;
+  }
+  return false;
+}
+
 // The factor by which a frame is shrunk for the search (1: searched at full resolution).
 int search_factor(const cv::Mat& gray, const DetectorOptions& options) {
   const int max_side = std::max(gray.cols, gray.rows);
@@ -498,7 +534,10 @@ std::vector<cv::Point2f> Board::detect_chessboard(const cv::Mat& gray,
   const cv::Size pattern(spec_.cols, spec_.rows);
   const int flags =
       cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE | cv::CALIB_CB_FAST_CHECK;
-  const int k = search_factor(gray, options);
+  int k = search_factor(gray, options);
+  const int cap = quad_cap(options, (spec_.cols + 1) * (spec_.rows + 1));
+  if (k == 1 && cap > 0 && std::min(gray.cols, gray.rows) >= 32 && busy_for_chessboard(gray, cap))
+    k = 2;
   if (k == 1) {
     if (!cv::findChessboardCorners(gray, pattern, pts, flags)) return {};
   } else {
@@ -528,10 +567,8 @@ void Board::detect_charuco(const cv::Mat& gray, const DetectorOptions& options,
       cv::makePtr<cv::aruco::DetectorParameters>(*impl_->params);
   params->minMarkerPerimeterRate = std::max(
       params->minMarkerPerimeterRate, min_perimeter_px / std::max(search.cols, search.rows));
-  if (options.max_candidate_quads > 0) {
-    const int cap = std::max(options.max_candidate_quads, 2 * spec_.cols * spec_.rows);
-    cap_candidate_quads(search, cap, params.get());
-  }
+  const int cap = quad_cap(options, spec_.cols * spec_.rows);
+  if (cap > 0) cap_candidate_quads(search, cap, params.get());
   cv::aruco::detectMarkers(search, impl_->dictionary, marker_corners, marker_ids, params);
   if (k > 1) {
     for (auto& quad : marker_corners)
