@@ -4,7 +4,8 @@
 // projections on the board frames (printed once per frame, before the timings). Then cluttered
 // 1280x720 frames (a checkerboard texture of 10 or 14 px squares, grids of 12 or 16 px dots 8 px
 // apart, the board in front of the 10 px checkerboard) and fuzz_session_feed's slow inputs
-// (tests/fuzz/crashes/fuzz_session_feed/slow-*), issue 16's "cluttered frames".
+// (tests/fuzz/crashes/fuzz_session_feed/slow-*), issue 16's "cluttered frames"; the 1280x720 board
+// and noise frames again with the clutter rules off (/no_cap), for their cost in one run.
 //   taskset -c 0 build/bin/bench_detection --benchmark_repetitions=3
 //       --benchmark_report_aggregates_only=true            (docs/performance.md)
 // The frames are rendered once, on first use: a 48 MP frame takes a few seconds and ~1.5 GB
@@ -149,19 +150,21 @@ const std::map<std::string, cv::Mat>& clutter_frames() {
   return frames;
 }
 
-void BM_DetectFrame(benchmark::State& state, std::string spec, const cv::Mat* frame) {
+void BM_DetectFrame(benchmark::State& state, std::string spec, const cv::Mat* frame,
+                    DetectorOptions options) {
   const Board board(BoardSpec::parse(spec));
   Detection d;
   for (auto _ : state) {
-    d = board.detect(*frame);
+    d = board.detect(*frame, options);
     benchmark::DoNotOptimize(d.image_points.data());
   }
   state.counters["corners"] = static_cast<double>(d.size());
   state.counters["markers"] = d.markers;
 }
 
-void register_frame(const std::string& name, const std::string& spec, const cv::Mat* frame) {
-  benchmark::RegisterBenchmark(name.c_str(), BM_DetectFrame, spec, frame)
+void register_frame(const std::string& name, const std::string& spec, const cv::Mat* frame,
+                    const DetectorOptions& options = {}) {
+  benchmark::RegisterBenchmark(name.c_str(), BM_DetectFrame, spec, frame, options)
       ->Unit(benchmark::kMillisecond)
       ->MeasureProcessCPUTime()
       ->UseRealTime();
@@ -181,6 +184,17 @@ int main(int argc, char** argv) {
             ->MeasureProcessCPUTime()  // OpenCV's worker threads too
             ->UseRealTime();
       }
+    }
+  }
+  // The cost of the clutter rules on frames they leave alone: the 1280x720 frames above with
+  // the rules off (max_candidate_quads = 0: the detection before them), in the same run.
+  DetectorOptions no_cap;
+  no_cap.max_candidate_quads = 0;
+  for (const char* spec : {kChessboard, kCharuco}) {
+    const std::string kind = std::string(spec).substr(0, std::string(spec).find(':'));
+    for (const bool noise : {true, false}) {
+      register_frame("BM_Detect/" + kind + "/1280x720/" + (noise ? "noise" : "board") + "/no_cap",
+                     spec, &scene(spec, 0, noise).image, no_cap);
     }
   }
   for (const char* spec : {kChessboard, kCharuco}) {
