@@ -454,7 +454,7 @@ void cap_candidate_quads(const cv::Mat& search, int cap, cv::aruco::DetectorPara
   if (max_side > kPrecountFullResolutionMaxSide) {
     // The same tests at half size: lengths, window and border halved, the approximation's
     // tolerance doubled (a pixel there is two; at OpenCV's tolerance the 5-px squares of a
-    // 10-px checkerboard are not quads, at twice it 4410 of 4411 are, and 133 blobs of noise).
+    // 10-px checkerboard are not quads, at twice it all 4411 are, and 133 blobs of uniform noise).
     QuadTest half = full;
     half.window = std::max(3, (full.window / 2) | 1);
     half.min_len = full.min_len / 2;
@@ -536,6 +536,7 @@ std::vector<cv::Point2f> Board::detect_chessboard(const cv::Mat& gray,
       cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE | cv::CALIB_CB_FAST_CHECK;
   int k = search_factor(gray, options);
   const int cap = quad_cap(options, (spec_.cols + 1) * (spec_.rows + 1));
+  // (A frame under 32 px a side has no room for a board at half size; it is cheap as it is.)
   if (k == 1 && cap > 0 && std::min(gray.cols, gray.rows) >= 32 && busy_for_chessboard(gray, cap))
     k = 2;
   if (k == 1) {
