@@ -7,6 +7,7 @@
 #include <cmath>
 #include <cstdio>
 #include <fstream>
+#include <functional>
 #include <limits>
 #include <map>
 #include <optional>
@@ -368,6 +369,138 @@ cv::Mat shrink_for_search(const cv::Mat& gray, int k) {
   return small;
 }
 
+// The contours of the dark blobs of `gray` and of their holes, as OpenCV's marker search finds
+// them at one scale: adaptive threshold (mean of a `window` square, less `constant`), every
+// contour point kept (its length is the contour's perimeter as OpenCV counts it).
+std::vector<std::vector<cv::Point>> threshold_contours(const cv::Mat& gray, int window,
+                                                       double constant) {
+  cv::Mat bin;
+  cv::adaptiveThreshold(gray, bin, 255, cv::ADAPTIVE_THRESH_MEAN_C, cv::THRESH_BINARY_INV, window,
+                        constant);
+  std::vector<std::vector<cv::Point>> contours;
+  cv::findContours(bin, contours, cv::RETR_LIST, cv::CHAIN_APPROX_NONE);
+  return contours;
+}
+
+// Candidate marker quads of one adaptive-threshold scale, tested as OpenCV 4.6's marker search
+// tests its contours: a closed contour of [min_len, max_len] points (its perimeter, as OpenCV
+// counts it) whose polygonal approximation (tolerance `accuracy` x its length) is a convex
+// quadrilateral with sides of at least `corner_rate` x its length and no corner within `border`
+// px of the image's edge.
+struct QuadTest {
+  int window = 0;  // adaptive threshold window (odd)
+  double constant = 0;
+  int min_len = 0, max_len = 0;
+  double accuracy = 0, corner_rate = 0;
+  int border = 0;
+};
+
+// The number of quads `gray` gives at one scale, counting stopped at `stop_at`; with
+// `perimeters`, their lengths too. The length test comes first: most contours of a frame of noise
+// or clutter are shorter than a marker, and approxPolyDP is the costly part.
+int count_quads(const cv::Mat& gray, const QuadTest& t, int stop_at, std::vector<int>* perimeters) {
+  int n = 0;
+  std::vector<cv::Point> poly;
+  for (const auto& c : threshold_contours(gray, t.window, t.constant)) {
+    const int len = static_cast<int>(c.size());
+    if (len < t.min_len || len > t.max_len) continue;
+    cv::approxPolyDP(c, poly, len * t.accuracy, true);
+    if (poly.size() != 4 || !cv::isContourConvex(poly)) continue;
+    const double min_side = t.corner_rate * len;
+    bool quad = true;
+    for (int j = 0; j < 4 && quad; ++j) {
+      const cv::Point& p = poly[j];
+      const cv::Point d = p - poly[(j + 1) % 4];
+      quad =
+          static_cast<double>(d.x) * d.x + static_cast<double>(d.y) * d.y >= min_side * min_side &&
+          p.x >= t.border && p.y >= t.border && p.x < gray.cols - t.border &&
+          p.y < gray.rows - t.border;
+    }
+    if (!quad) continue;
+    if (perimeters) perimeters->push_back(len);
+    if (++n >= stop_at) break;
+  }
+  return n;
+}
+
+// Frames whose longer side is at most this are pre-counted at full resolution; larger ones are
+// first counted on a half-size copy (a quarter of the pixels), and only when that count exceeds
+// the cap at full resolution. The fuzzer's slow 256x256 frames are textures of 1-2 px dashes,
+// which a half-size copy averages away.
+constexpr int kPrecountFullResolutionMaxSide = 640;
+
+// Issue 16, cluttered frames (DetectorOptions::max_candidate_quads): when the search image gives
+// more than `cap` candidate quads at OpenCV's middle threshold scale, raises the minimum marker
+// perimeter to the smallest that leaves at most `cap` of them (the board's markers are usually
+// the largest quads, the clutter small). Below the cap the parameters are left as they are, and
+// the detection is OpenCV's, bit for bit. Cost on a 1280x720 frame: the half-size count, about
+// 0.5 ms with a board, 6 ms on uniform noise (findContours on its many small blobs); a frame of
+// clutter adds the full-resolution count, 3-6 ms (docs/performance.md, "Cluttered frames").
+void cap_candidate_quads(const cv::Mat& search, int cap, cv::aruco::DetectorParameters* params) {
+  const int max_side = std::max(search.cols, search.rows);
+  QuadTest full;
+  // OpenCV thresholds at windows min, min + step, ..., max; the count takes the middle one.
+  const int scales = (params->adaptiveThreshWinSizeMax - params->adaptiveThreshWinSizeMin) /
+                         std::max(1, params->adaptiveThreshWinSizeStep) +
+                     1;
+  full.window =
+      params->adaptiveThreshWinSizeMin + (scales - 1) / 2 * params->adaptiveThreshWinSizeStep;
+  full.constant = params->adaptiveThreshConstant;
+  full.min_len = static_cast<int>(params->minMarkerPerimeterRate * max_side);  // as OpenCV
+  full.max_len = static_cast<int>(params->maxMarkerPerimeterRate * max_side);
+  full.accuracy = params->polygonalApproxAccuracyRate;
+  full.corner_rate = params->minCornerDistanceRate;
+  full.border = params->minDistanceToBorder;
+  if (max_side > kPrecountFullResolutionMaxSide) {
+    // The same tests at half size: lengths, window and border halved, the approximation's
+    // tolerance doubled (a pixel there is two; at OpenCV's tolerance the 5-px squares of a
+    // 10-px checkerboard are not quads, at twice it all 4411 are, and 133 blobs of uniform noise).
+    QuadTest half = full;
+    half.window = std::max(3, (full.window / 2) | 1);
+    half.min_len = full.min_len / 2;
+    half.max_len = full.max_len / 2;
+    half.accuracy = 2 * full.accuracy;
+    half.border = full.border / 2;
+    if (count_quads(shrink_for_search(search, 2), half, cap + 1, nullptr) <= cap) return;
+  }
+  std::vector<int> perimeters;
+  if (count_quads(search, full, std::numeric_limits<int>::max(), &perimeters) <= cap) return;
+  std::nth_element(perimeters.begin(), perimeters.begin() + cap, perimeters.end(),
+                   std::greater<int>());
+  const int keep_from = perimeters[cap] + 1;  // the (cap + 1)-th longest and shorter go
+  // OpenCV keeps contours of at least (int)(rate x longer side) points.
+  params->minMarkerPerimeterRate =
+      std::max(params->minMarkerPerimeterRate, (keep_from + 0.5) / max_side);
+}
+
+// DetectorOptions::max_candidate_quads for a board of `squares` squares: never below twice them,
+// so that a large board does not push its own markers out; 0 when the cap is off.
+int quad_cap(const DetectorOptions& options, int squares) {
+  return options.max_candidate_quads > 0 ? std::max(options.max_candidate_quads, 2 * squares) : 0;
+}
+
+// Chessboard, issue 16: OpenCV's chessboard search links the quads it finds pairwise, at each of
+// its thresholds and dilations, and when no board is found it tries them all: a 1280x720 frame
+// of uniform noise took 0.8-1.4 s, a checkerboard texture of 14 px squares 5.3 s, of 20 px 1.2 s,
+// strong sensor noise (sigma 40-80 grey levels, no board) 0.2-1.0 s, where a board frame takes
+// 3-15 ms. Such frames show many blobs of a chessboard square's size (8 px and more): contours of
+// at least kBusyMinPoints points at half size, at the marker pre-count's threshold. Measured
+// there: noise 1358, the 14 px checkerboard 2251, sensor noise of sigma 20-80 1200-1300; board
+// frames 72-140 up to sigma 10 (a textured background included). Above `cap` of them the frame is
+// searched on a half-size copy like a large frame (corners refined at full resolution).
+constexpr int kBusyMinPoints = 16;
+constexpr int kHalfSizeWindow = 7;        // OpenCV's middle marker-search window (13) at half size
+constexpr double kThresholdConstant = 7;  // OpenCV's adaptiveThreshConstant
+
+bool busy_for_chessboard(const cv::Mat& gray, int cap) {
+  int n = 0;
+  for (const auto& c :
+       threshold_contours(shrink_for_search(gray, 2), kHalfSizeWindow, kThresholdConstant)) {
+    if (static_cast<int>(c.size()) >= kBusyMinPoints && ++n > cap) return true;
+  }
+  return false;
+}
+
 // The factor by which a frame is shrunk for the search (1: searched at full resolution).
 int search_factor(const cv::Mat& gray, const DetectorOptions& options) {
   const int max_side = std::max(gray.cols, gray.rows);
@@ -401,7 +534,11 @@ std::vector<cv::Point2f> Board::detect_chessboard(const cv::Mat& gray,
   const cv::Size pattern(spec_.cols, spec_.rows);
   const int flags =
       cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE | cv::CALIB_CB_FAST_CHECK;
-  const int k = search_factor(gray, options);
+  int k = search_factor(gray, options);
+  const int cap = quad_cap(options, (spec_.cols + 1) * (spec_.rows + 1));
+  // (A frame under 32 px a side has no room for a board at half size; it is cheap as it is.)
+  if (k == 1 && cap > 0 && std::min(gray.cols, gray.rows) >= 32 && busy_for_chessboard(gray, cap))
+    k = 2;
   if (k == 1) {
     if (!cv::findChessboardCorners(gray, pattern, pts, flags)) return {};
   } else {
@@ -431,6 +568,8 @@ void Board::detect_charuco(const cv::Mat& gray, const DetectorOptions& options,
       cv::makePtr<cv::aruco::DetectorParameters>(*impl_->params);
   params->minMarkerPerimeterRate = std::max(
       params->minMarkerPerimeterRate, min_perimeter_px / std::max(search.cols, search.rows));
+  const int cap = quad_cap(options, spec_.cols * spec_.rows);
+  if (cap > 0) cap_candidate_quads(search, cap, params.get());
   cv::aruco::detectMarkers(search, impl_->dictionary, marker_corners, marker_ids, params);
   if (k > 1) {
     for (auto& quad : marker_corners)

@@ -93,6 +93,18 @@ struct DetectorOptions {
   // (quadratic in their number) took up to 1.6 s per frame. No DICT_4X4 marker was decoded at
   // 1.33 px per cell or less (blur 0.8 px); 0 keeps OpenCV's rule alone.
   double min_marker_pixels_per_cell = 1.25;
+  // ChArUco: at most this many candidate marker quads per frame (one threshold scale), or twice
+  // the board's squares (cols x rows: each holds a marker or is black) if that is more. A frame
+  // of clutter (a chessboard poster, a dot grid, a perforated sheet) gave OpenCV 4.6 thousands of
+  // candidates, filtered pairwise (quadratic in their number): 2.4 s for a 1280x720 checkerboard
+  // of 10 px squares. Above the cap the frame is searched for the largest quads only: the
+  // smallest minimum perimeter that leaves at most the cap. 300 quads of clutter cost OpenCV
+  // about 40 ms; the 9x6 board gives 63. Chessboard: a frame of more than this many blobs of a
+  // square's size (or twice the board's squares) is searched on a half-size copy, as a large
+  // frame is (OpenCV's chessboard search took 1.4 s on 1280x720 noise, 5.3 s on a checkerboard
+  // texture of 14 px squares). 0: neither (docs/performance.md, "Cluttered frames").
+  int max_candidate_quads = kMaxCandidateQuads;
+  static constexpr int kMaxCandidateQuads = 300;
 };
 
 // A rendered board: texel (u, v) (OpenCV pixel convention) shows board point

@@ -1,7 +1,11 @@
 // Detection cost per frame against the frame size (issue 16): a frame of uniform noise (the
 // worst case of the chessboard detector) and a frame showing the board, for the chessboard and
 // the ChArUco board, at 1280x720, 3, 5, 12 and 48 MP; and the corner error against the true
-// projections on the board frames (printed once per frame, before the timings).
+// projections on the board frames (printed once per frame, before the timings). Then cluttered
+// 1280x720 frames (a checkerboard texture of 10 or 14 px squares, grids of 12 or 16 px dots 8 px
+// apart, the board in front of the 10 px checkerboard) and fuzz_session_feed's slow inputs
+// (tests/fuzz/crashes/fuzz_session_feed/slow-*), issue 16's "cluttered frames"; the 1280x720 board
+// and noise frames again with the clutter rules off (/no_cap), for their cost in one run.
 //   taskset -c 0 build/bin/bench_detection --benchmark_repetitions=3
 //       --benchmark_report_aggregates_only=true            (docs/performance.md)
 // The frames are rendered once, on first use: a 48 MP frame takes a few seconds and ~1.5 GB
@@ -11,12 +15,16 @@
 #include <chrono>
 #include <cmath>
 #include <cstdio>
+#include <filesystem>
 #include <map>
 #include <string>
 #include <vector>
 
 #include "board/board.hpp"
 #include "board/views.hpp"
+#include "fuzz_frames.hpp"
+#include "lens/reference_models.hpp"
+#include "sim/clutter.hpp"
 #include "sim/synthetic.hpp"
 
 using namespace posecal;
@@ -115,6 +123,53 @@ void BM_Detect(benchmark::State& state, std::string spec, int size_index, bool n
   }
 }
 
+// Cluttered 1280x720 frames, by name.
+const std::map<std::string, cv::Mat>& clutter_frames() {
+  static const std::map<std::string, cv::Mat> frames = [] {
+    const cv::Size hd(1280, 720);
+    std::map<std::string, cv::Mat> f;
+    f["checkerboard10"] = checkerboard_clutter(hd, 10);
+    f["checkerboard14"] = checkerboard_clutter(hd, 14);
+    f["dots12_8"] = dot_grid_clutter(hd, 12, 8);
+    f["dots16_8"] = dot_grid_clutter(hd, 16, 8);
+    for (const char* spec : {kChessboard, kCharuco}) {
+      // The board of the 1280x720 board frame above, in front of the 10 px checkerboard.
+      const Board board(BoardSpec::parse(spec));
+      const double f_px = 0.8 * hd.width;
+      const CameraModel cam =
+          CameraModel::opencv5(hd.width, hd.height, f_px, f_px, 639.5, 359.5, {0, 0, 0, 0, 0});
+      RenderOptions ro;
+      ro.blur_sigma_px = 0.8;
+      SyntheticCamera sc(cam, board, ro);
+      const Pose p = board_pose_at(board, Eigen::Vector3d(0.01, -0.005, 0.40), 0.7, 0.4, 0.2);
+      const std::string kind = std::string(spec).substr(0, std::string(spec).find(':'));
+      f[kind + "_on_checkerboard10"] = render_in_front_of(sc, p, f["checkerboard10"]);
+    }
+    return f;
+  }();
+  return frames;
+}
+
+void BM_DetectFrame(benchmark::State& state, std::string spec, const cv::Mat* frame,
+                    DetectorOptions options) {
+  const Board board(BoardSpec::parse(spec));
+  Detection d;
+  for (auto _ : state) {
+    d = board.detect(*frame, options);
+    benchmark::DoNotOptimize(d.image_points.data());
+  }
+  state.counters["corners"] = static_cast<double>(d.size());
+  state.counters["markers"] = d.markers;
+}
+
+void register_frame(const std::string& name, const std::string& spec, const cv::Mat* frame,
+                    const DetectorOptions& options = {}) {
+  benchmark::RegisterBenchmark(name.c_str(), BM_DetectFrame, spec, frame, options)
+      ->Unit(benchmark::kMillisecond)
+      ->MeasureProcessCPUTime()
+      ->UseRealTime();
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
@@ -131,6 +186,35 @@ int main(int argc, char** argv) {
       }
     }
   }
+  // The cost of the clutter rules on frames they leave alone: the 1280x720 frames above with
+  // the rules off (max_candidate_quads = 0: the detection before them), in the same run.
+  DetectorOptions no_cap;
+  no_cap.max_candidate_quads = 0;
+  for (const char* spec : {kChessboard, kCharuco}) {
+    const std::string kind = std::string(spec).substr(0, std::string(spec).find(':'));
+    for (const bool noise : {true, false}) {
+      register_frame("BM_Detect/" + kind + "/1280x720/" + (noise ? "noise" : "board") + "/no_cap",
+                     spec, &scene(spec, 0, noise).image, no_cap);
+    }
+  }
+  for (const char* spec : {kChessboard, kCharuco}) {
+    const std::string kind = std::string(spec).substr(0, std::string(spec).find(':'));
+    for (const auto& [name, frame] : clutter_frames()) {
+      const bool board = name.find("_on_") != std::string::npos;
+      if (!board || name.rfind(kind, 0) == 0)
+        register_frame("BM_Detect/" + kind + "/1280x720/" + name, spec, &frame);
+    }
+  }
+  // fuzz_session_feed's slow inputs, through Board::detect as the C ABI calls it.
+  static std::map<std::string, cv::Mat> fuzz;
+  namespace fs = std::filesystem;
+  for (const auto& e : fs::directory_iterator(fs::path(POSECAL_SOURCE_DIR) /
+                                              "tests/fuzz/crashes/fuzz_session_feed")) {
+    const std::string name = e.path().filename().string();
+    if (name.rfind("slow-", 0) == 0)
+      fuzz[name] = testing_support::fuzz_session_frame(e.path().string());
+  }
+  for (const auto& [name, frame] : fuzz) register_frame("BM_DetectFuzz/" + name, kCharuco, &frame);
   benchmark::Initialize(&argc, argv);
   if (benchmark::ReportUnrecognizedArguments(argc, argv)) return 1;
   benchmark::RunSpecifiedBenchmarks();
