@@ -65,7 +65,9 @@ enum class Rasteriser { kSplash, kCairo };
 
 // Page `page` (1-based) at 600 dpi, 8-bit grey.
 cv::Mat rasterise(const std::string& pdf, int page, Rasteriser r) {
-  const std::string prefix = testing::TempDir() + "/posecal_raster";
+  // One file per test: ctest -j runs the tests of this binary side by side.
+  const std::string prefix = testing::TempDir() + "/posecal_raster_" +
+                             testing::UnitTest::GetInstance()->current_test_info()->name();
   const std::string pages = " -f " + std::to_string(page) + " -l " + std::to_string(page);
   const std::string file = prefix + (r == Rasteriser::kSplash ? ".pgm" : ".png");
   const std::string out =
@@ -233,7 +235,8 @@ TEST(Printable, BadRequestsAreRefusedAndNothingIsWritten) {
   const Board board;
   PrintOptions o;
   o.paper = Paper::kA4;
-  const std::string png = testing::TempDir() + "/posecal_paper.png";
+  const std::string png = testing::TempDir() + "/posecal_paper_" +
+                          testing::UnitTest::GetInstance()->current_test_info()->name() + ".png";
   EXPECT_THROW(board.write_printable(png, o), Error);  // a paper size is for a PDF
   struct stat st {};
   EXPECT_NE(stat(png.c_str(), &st), 0);
