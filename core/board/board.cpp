@@ -398,10 +398,11 @@ struct QuadTest {
 // The number of quads `gray` gives at one scale, counting stopped at `stop_at`; with
 // `perimeters`, their lengths too. The length test comes first: most contours of a frame of noise
 // or clutter are shorter than a marker, and approxPolyDP is the costly part.
-int count_quads(const cv::Mat& gray, const QuadTest& t, int stop_at, std::vector<int>* perimeters) {
+int count_quads(const std::vector<std::vector<cv::Point>>& contours, cv::Size size, const QuadTest& t,
+                int stop_at, std::vector<int>* perimeters) {
   int n = 0;
   std::vector<cv::Point> poly;
-  for (const auto& c : threshold_contours(gray, t.window, t.constant)) {
+  for (const auto& c : contours) {
     const int len = static_cast<int>(c.size());
     if (len < t.min_len || len > t.max_len) continue;
     cv::approxPolyDP(c, poly, len * t.accuracy, true);
@@ -413,8 +414,8 @@ int count_quads(const cv::Mat& gray, const QuadTest& t, int stop_at, std::vector
       const cv::Point d = p - poly[(j + 1) % 4];
       quad =
           static_cast<double>(d.x) * d.x + static_cast<double>(d.y) * d.y >= min_side * min_side &&
-          p.x >= t.border && p.y >= t.border && p.x < gray.cols - t.border &&
-          p.y < gray.rows - t.border;
+          p.x >= t.border && p.y >= t.border && p.x < size.width - t.border &&
+          p.y < size.height - t.border;
     }
     if (!quad) continue;
     if (perimeters) perimeters->push_back(len);
@@ -429,14 +430,48 @@ int count_quads(const cv::Mat& gray, const QuadTest& t, int stop_at, std::vector
 // which a half-size copy averages away.
 constexpr int kPrecountFullResolutionMaxSide = 640;
 
+using Contours = std::vector<std::vector<cv::Point>>;
+
+// Busy frames, issue 16. OpenCV's chessboard search links the quads it finds pairwise, at each of
+// its thresholds and dilations, and when no board is found it tries them all: a 1280x720 frame
+// of uniform noise took 0.8-1.4 s, a checkerboard texture of 14 px squares 5.3 s, of 20 px 1.2 s,
+// strong sensor noise (sigma 40-80 grey levels, no board) 0.2-1.0 s, where a board frame takes
+// 3-15 ms. OpenCV's marker search thresholds at three scales and follows every contour: 135 ms on
+// 1280x720 uniform noise, which has no quads for the candidate cap to drop. Such frames show many
+// blobs of a chessboard square's size (8 px and more): contours of at least kBusyMinPoints points
+// at half size, at the marker search's middle threshold (window 13, constant 7, halved). Measured
+// there: noise 1358, the 14 px checkerboard 2251, sensor noise of sigma 20-80 1200-1300; board
+// frames 72-140 up to sigma 10 (a textured background included). Above the cap of them the frame
+// is searched on a copy shrunk twice as much (corners refined at full resolution).
+constexpr int kBusyMinPoints = 16;
+constexpr int kCharucoBusyFactor = 2;  // ChArUco's limit: twice the cap (see detect_charuco)
+constexpr int kHalfSizeWindow = 7;        // OpenCV's middle marker-search window (13) at half size
+constexpr double kThresholdConstant = 7;  // OpenCV's adaptiveThreshConstant
+
+Contours half_size_contours(const cv::Mat& search) {
+  return threshold_contours(shrink_for_search(search, 2), kHalfSizeWindow, kThresholdConstant);
+}
+
+bool busy(const Contours& half_size, int cap) {
+  int n = 0;
+  for (const auto& c : half_size) {
+    if (static_cast<int>(c.size()) >= kBusyMinPoints && ++n > cap) return true;
+  }
+  return false;
+}
+
 // Issue 16, cluttered frames (DetectorOptions::max_candidate_quads): when the search image gives
 // more than `cap` candidate quads at OpenCV's middle threshold scale, raises the minimum marker
 // perimeter to the smallest that leaves at most `cap` of them (the board's markers are usually
 // the largest quads, the clutter small). Below the cap the parameters are left as they are, and
-// the detection is OpenCV's, bit for bit. Cost on a 1280x720 frame: the half-size count, about
-// 0.5 ms with a board, 6 ms on uniform noise (findContours on its many small blobs); a frame of
-// clutter adds the full-resolution count, 3-6 ms (docs/performance.md, "Cluttered frames").
-void cap_candidate_quads(const cv::Mat& search, int cap, cv::aruco::DetectorParameters* params) {
+// the detection is OpenCV's, bit for bit. A search image of more than
+// kPrecountFullResolutionMaxSide is counted first at half size: `half_size` is its
+// half_size_contours when the caller has them (they are the ones the count needs with OpenCV's
+// default threshold parameters), else they are made here. Cost on a 1280x720 frame: the
+// half-size count, about 0.5 ms with a board; a frame of clutter adds the full-resolution count,
+// 3-6 ms (docs/performance.md, "Cluttered frames").
+void cap_candidate_quads(const cv::Mat& search, int cap, const Contours* half_size,
+                         cv::aruco::DetectorParameters* params) {
   const int max_side = std::max(search.cols, search.rows);
   QuadTest full;
   // OpenCV thresholds at windows min, min + step, ..., max; the count takes the middle one.
@@ -461,10 +496,19 @@ void cap_candidate_quads(const cv::Mat& search, int cap, cv::aruco::DetectorPara
     half.max_len = full.max_len / 2;
     half.accuracy = 2 * full.accuracy;
     half.border = full.border / 2;
-    if (count_quads(shrink_for_search(search, 2), half, cap + 1, nullptr) <= cap) return;
+    const cv::Size half_frame(search.cols / 2, search.rows / 2);
+    const bool reuse =
+        half_size && half.window == kHalfSizeWindow && half.constant == kThresholdConstant;
+    const Contours made =
+        reuse ? Contours{}
+              : threshold_contours(shrink_for_search(search, 2), half.window, half.constant);
+    if (count_quads(reuse ? *half_size : made, half_frame, half, cap + 1, nullptr) <= cap) return;
   }
   std::vector<int> perimeters;
-  if (count_quads(search, full, std::numeric_limits<int>::max(), &perimeters) <= cap) return;
+  if (count_quads(threshold_contours(search, full.window, full.constant), search.size(), full,
+                  std::numeric_limits<int>::max(), &perimeters) <= cap) {
+    return;
+  }
   std::nth_element(perimeters.begin(), perimeters.begin() + cap, perimeters.end(),
                    std::greater<int>());
   const int keep_from = perimeters[cap] + 1;  // the (cap + 1)-th longest and shorter go
@@ -477,28 +521,6 @@ void cap_candidate_quads(const cv::Mat& search, int cap, cv::aruco::DetectorPara
 // so that a large board does not push its own markers out; 0 when the cap is off.
 int quad_cap(const DetectorOptions& options, int squares) {
   return options.max_candidate_quads > 0 ? std::max(options.max_candidate_quads, 2 * squares) : 0;
-}
-
-// Chessboard, issue 16: OpenCV's chessboard search links the quads it finds pairwise, at each of
-// its thresholds and dilations, and when no board is found it tries them all: a 1280x720 frame
-// of uniform noise took 0.8-1.4 s, a checkerboard texture of 14 px squares 5.3 s, of 20 px 1.2 s,
-// strong sensor noise (sigma 40-80 grey levels, no board) 0.2-1.0 s, where a board frame takes
-// 3-15 ms. Such frames show many blobs of a chessboard square's size (8 px and more): contours of
-// at least kBusyMinPoints points at half size, at the marker pre-count's threshold. Measured
-// there: noise 1358, the 14 px checkerboard 2251, sensor noise of sigma 20-80 1200-1300; board
-// frames 72-140 up to sigma 10 (a textured background included). Above `cap` of them the frame is
-// searched on a half-size copy like a large frame (corners refined at full resolution).
-constexpr int kBusyMinPoints = 16;
-constexpr int kHalfSizeWindow = 7;        // OpenCV's middle marker-search window (13) at half size
-constexpr double kThresholdConstant = 7;  // OpenCV's adaptiveThreshConstant
-
-bool busy_for_chessboard(const cv::Mat& gray, int cap) {
-  int n = 0;
-  for (const auto& c :
-       threshold_contours(shrink_for_search(gray, 2), kHalfSizeWindow, kThresholdConstant)) {
-    if (static_cast<int>(c.size()) >= kBusyMinPoints && ++n > cap) return true;
-  }
-  return false;
 }
 
 // The factor by which a frame is shrunk for the search (1: searched at full resolution).
@@ -535,14 +557,16 @@ std::vector<cv::Point2f> Board::detect_chessboard(const cv::Mat& gray,
   const int flags =
       cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE | cv::CALIB_CB_FAST_CHECK;
   int k = search_factor(gray, options);
+  cv::Mat search = k > 1 ? shrink_for_search(gray, k) : gray;
   const int cap = quad_cap(options, (spec_.cols + 1) * (spec_.rows + 1));
-  // (A frame under 32 px a side has no room for a board at half size; it is cheap as it is.)
-  if (k == 1 && cap > 0 && std::min(gray.cols, gray.rows) >= 32 && busy_for_chessboard(gray, cap))
-    k = 2;
-  if (k == 1) {
-    if (!cv::findChessboardCorners(gray, pattern, pts, flags)) return {};
-  } else {
-    if (!cv::findChessboardCorners(shrink_for_search(gray, k), pattern, pts, flags)) return {};
+  // A busy frame is searched on a copy shrunk twice as much. (A search image under 32 px a side
+  // has no room for a board at half size; it is cheap as it is.)
+  if (cap > 0 && std::min(search.cols, search.rows) >= 32 && busy(half_size_contours(search), cap)) {
+    k *= 2;
+    search = shrink_for_search(gray, k);
+  }
+  if (!cv::findChessboardCorners(search, pattern, pts, flags)) return {};
+  if (k > 1) {
     for (auto& p : pts) p = to_full_resolution(p, k);
   }
   int hw = options.subpix_half_window;
@@ -559,8 +583,26 @@ void Board::detect_charuco(const cv::Mat& gray, const DetectorOptions& options,
                            Detection* det) const {
   std::vector<std::vector<cv::Point2f>> marker_corners;
   std::vector<int> marker_ids;
-  const int k = search_factor(gray, options);
-  const cv::Mat search = k > 1 ? shrink_for_search(gray, k) : gray;
+  int k = search_factor(gray, options);
+  cv::Mat search = k > 1 ? shrink_for_search(gray, k) : gray;
+  const int cap = quad_cap(options, spec_.cols * spec_.rows);
+  // A busy search image (uniform noise, dense clutter; see busy()) is searched on a copy shrunk
+  // twice as much. Search images of kPrecountFullResolutionMaxSide or less are not tested: the
+  // test runs at half size, where the fine textures that slow small frames down are averaged
+  // away; they are cheap enough as they are (640x480 noise: about 50 ms). The limit is twice the
+  // chessboard's: the markers' bits add blobs, and sensor noise of sigma 15 on a board frame gives
+  // 276-453 (9x6 and 12x9 boards), frames that keep the full-resolution search (70-95 ms) and all
+  // their corners; from sigma 20 (831 and more) the half-size search finds 10-37% fewer corners
+  // than the full-resolution one, in bounded time (docs/performance.md, "Cluttered frames").
+  Contours half_size;
+  if (cap > 0 && std::max(search.cols, search.rows) > kPrecountFullResolutionMaxSide) {
+    half_size = half_size_contours(search);
+    if (busy(half_size, kCharucoBusyFactor * cap)) {
+      k *= 2;
+      search = shrink_for_search(gray, k);
+      half_size.clear();
+    }
+  }
   // Quads too small to be decoded are not searched (DetectorOptions::min_marker_pixels_per_cell).
   const int cells = impl_->dictionary->markerSize + 2 * impl_->params->markerBorderBits;
   const double min_perimeter_px = 4.0 * options.min_marker_pixels_per_cell * cells;
@@ -568,8 +610,9 @@ void Board::detect_charuco(const cv::Mat& gray, const DetectorOptions& options,
       cv::makePtr<cv::aruco::DetectorParameters>(*impl_->params);
   params->minMarkerPerimeterRate = std::max(
       params->minMarkerPerimeterRate, min_perimeter_px / std::max(search.cols, search.rows));
-  const int cap = quad_cap(options, spec_.cols * spec_.rows);
-  if (cap > 0) cap_candidate_quads(search, cap, params.get());
+  if (cap > 0) {
+    cap_candidate_quads(search, cap, half_size.empty() ? nullptr : &half_size, params.get());
+  }
   cv::aruco::detectMarkers(search, impl_->dictionary, marker_corners, marker_ids, params);
   if (k > 1) {
     for (auto& quad : marker_corners)

@@ -99,10 +99,12 @@ struct DetectorOptions {
   // candidates, filtered pairwise (quadratic in their number): 2.4 s for a 1280x720 checkerboard
   // of 10 px squares. Above the cap the frame is searched for the largest quads only: the
   // smallest minimum perimeter that leaves at most the cap. 300 quads of clutter cost OpenCV
-  // about 40 ms; the 9x6 board gives 63. Chessboard: a frame of more than this many blobs of a
-  // square's size (or twice the board's squares) is searched on a half-size copy, as a large
-  // frame is (OpenCV's chessboard search took 1.4 s on 1280x720 noise, 5.3 s on a checkerboard
-  // texture of 14 px squares). 0: neither (docs/performance.md, "Cluttered frames").
+  // about 40 ms; the 9x6 board gives 63. Busy frames: a search image of more than this many
+  // blobs of a chessboard square's size (or twice the board's squares; twice that for ChArUco,
+  // whose markers' bits are blobs too) is searched on a copy shrunk twice as much (OpenCV's
+  // chessboard search took 1.4 s on 1280x720 noise, 5.3 s on a checkerboard texture of 14 px
+  // squares; its marker search 135-180 ms on noise). 0: neither (docs/performance.md,
+  // "Cluttered frames" and "Busy frames").
   int max_candidate_quads = kMaxCandidateQuads;
   static constexpr int kMaxCandidateQuads = 300;
 };

@@ -147,7 +147,9 @@ TEST(BoundedDetection, ClutteredFramesAreSearchedInBoundedTime) {
 }
 
 // ... and a board in front of the clutter is found as OpenCV's uncapped search finds it: the same
-// markers and corners, its markers (about 40 px) being larger than the clutter's quads.
+// markers and corners, its markers (about 40 px) being larger than the clutter's quads. Such a
+// frame is busy (more blobs than the cap), so its markers are searched on a half-size copy; the
+// corners, refined at full resolution, agree with the full-resolution search's to 0.01 px.
 TEST(BoundedDetection, ABoardInFrontOfClutterIsStillFound) {
   const CameraModel cam = c525_reference_model();
   const Board board;
@@ -175,7 +177,8 @@ TEST(BoundedDetection, ABoardInFrontOfClutterIsStillFound) {
     EXPECT_EQ(d.size(), static_cast<size_t>(board.num_corners())) << name;
     EXPECT_EQ(d.markers, o.markers) << name;
     EXPECT_EQ(d.ids, o.ids) << name;
-    EXPECT_EQ(d.image_points, o.image_points) << name;
+    for (size_t i = 0; i < std::min(d.size(), o.size()); ++i)
+      EXPECT_LT(cv::norm(d.image_points[i] - o.image_points[i]), 0.01) << name << " corner " << i;
     EXPECT_LT(std::sqrt(ss / std::max<size_t>(1, d.size())), 0.1) << name;
     EXPECT_LT(s, 0.5) << name;
   }
@@ -197,6 +200,14 @@ TEST(BoundedDetection, FramesWithoutClutterAreUnchangedByTheCandidateCap) {
       frames = {uniform_noise(1280, 720), uniform_noise(640, 480), uniform_noise(256, 256)};
     }
     for (const Pose& p : random_board_views(11, 4, cam, board)) frames.push_back(sc.render(p));
+    if (board.spec().type == BoardType::kCharuco) {
+      // Sensor noise of sigma 15 gives a ChArUco board frame 276-453 busy blobs: under twice the
+      // cap, so these keep the full-resolution search (and every corner it finds).
+      RenderOptions noisy = ro;
+      noisy.noise_sigma = 15;
+      SyntheticCamera nc(cam, board, noisy);
+      for (const Pose& p : random_board_views(12, 2, cam, board)) frames.push_back(nc.render(p));
+    }
     for (const cv::Mat& img : frames) {
       const Detection a = board.detect(img), b = board.detect(img, uncapped);
       EXPECT_EQ(a.markers, b.markers) << spec;
