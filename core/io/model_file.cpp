@@ -2,16 +2,12 @@
 // content, the bounded read, the atomic write, and what the formats share.
 #include "io/model_file.hpp"
 
-#include <fcntl.h>
-#include <sys/stat.h>
-#include <unistd.h>
 
 #include <algorithm>
-#include <cerrno>
-#include <cstring>
 
 #include "common/atomic_file.hpp"
 #include "common/error.hpp"
+#include "common/regular_file.hpp"
 #include "io/model_file_internal.hpp"
 
 namespace posecal {
@@ -70,43 +66,6 @@ const FormatInfo& info(ModelFormat f) {
 bool ends_with(const std::string& s, std::string_view suffix) {
   return s.size() > suffix.size() &&
          s.compare(s.size() - suffix.size(), suffix.size(), suffix) == 0;
-}
-
-// Reads the whole file, refusing what is not a regular file (a FIFO or a device would block
-// or never end) and what is larger than kMaxModelFileBytes.
-std::string read_bounded(const std::string& path) {
-  const int fd = ::open(path.c_str(), O_RDONLY | O_NONBLOCK | O_CLOEXEC);
-  if (fd < 0) {
-    throw Error(ErrorCode::kIo,
-                "cannot open camera model file '" + path + "': " + std::strerror(errno));
-  }
-  struct Closer {
-    int fd;
-    ~Closer() { ::close(fd); }
-  } closer{fd};
-  struct stat st {};
-  if (::fstat(fd, &st) != 0) {
-    throw Error(ErrorCode::kIo,
-                "cannot stat camera model file '" + path + "': " + std::strerror(errno));
-  }
-  if (!S_ISREG(st.st_mode)) bad_file(path, "not a regular file");
-  const std::string limit = "the limit is " + std::to_string(kMaxModelFileBytes) + " bytes";
-  if (st.st_size > static_cast<off_t>(kMaxModelFileBytes)) {
-    bad_file(path, std::to_string(st.st_size) + " bytes; " + limit);
-  }
-  std::string text;
-  char buf[65536];
-  while (true) {
-    const ssize_t n = ::read(fd, buf, sizeof buf);
-    if (n < 0 && errno == EINTR) continue;
-    if (n < 0)
-      throw Error(ErrorCode::kIo,
-                  "cannot read camera model file '" + path + "': " + std::strerror(errno));
-    if (n == 0) break;
-    text.append(buf, static_cast<size_t>(n));
-    if (text.size() > kMaxModelFileBytes) bad_file(path, "larger than " + limit + " (it grew)");
-  }
-  return text;
 }
 
 // The first key of a text starting with '{' (JSON or a Python dict), skipping spaces and '#'
@@ -188,7 +147,7 @@ std::optional<ModelFormat> model_format_from_path(const std::string& path) {
 }
 
 ModelFile read_model_file(const std::string& path) {
-  const std::string bytes = read_bounded(path);
+  const std::string bytes = read_regular_file(path, kMaxModelFileBytes, "camera model file");
   const ModelFormat format =
       ends_with(path, ".cameramodel") ? ModelFormat::kMrcal : format_of_text(bytes);
   switch (format) {

@@ -13,6 +13,7 @@
 #include "common/atomic_file.hpp"
 #include "common/clock.hpp"
 #include "common/error.hpp"
+#include "common/regular_file.hpp"
 
 namespace posecal {
 
@@ -132,30 +133,7 @@ void apply_record(const Json& j, JournalContents* out) {
 }
 
 std::string read_file(const std::string& path) {
-  const int fd = ::open(path.c_str(), O_RDONLY | O_CLOEXEC | O_NONBLOCK);
-  if (fd < 0)
-    throw Error(ErrorCode::kIo, "cannot open journal '" + path + "': " + errno_text(errno));
-  struct stat st {};
-  std::string text;
-  const bool regular = ::fstat(fd, &st) == 0 && S_ISREG(st.st_mode);
-  if (regular && static_cast<size_t>(st.st_size) <= kMaxJournalBytes) {
-    text.resize(static_cast<size_t>(st.st_size));
-    size_t done = 0;
-    while (done < text.size()) {
-      const ssize_t n = ::read(fd, text.data() + done, text.size() - done);
-      if (n < 0 && errno == EINTR) continue;
-      if (n <= 0) break;
-      done += static_cast<size_t>(n);
-    }
-    text.resize(done);
-  }
-  ::close(fd);
-  if (!regular)
-    throw Error(ErrorCode::kInvalidArgument, "journal '" + path + "' is not a regular file");
-  if (static_cast<size_t>(st.st_size) > kMaxJournalBytes) {
-    throw Error(ErrorCode::kInvalidArgument, "journal '" + path + "' is larger than 1 GiB");
-  }
-  return text;
+  return read_regular_file(path, kMaxJournalBytes, "journal");
 }
 
 }  // namespace

@@ -3,11 +3,9 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
-#include <fstream>
-#include <sstream>
-#include <sys/stat.h>
 
 #include "common/error.hpp"
+#include "common/regular_file.hpp"
 
 namespace posecal::abi {
 
@@ -28,20 +26,6 @@ std::string figure(double v) {
   char buf[32];
   std::snprintf(buf, sizeof buf, "%.4g", v);
   return buf;
-}
-
-std::string read_file_bounded(const std::string& path) {
-  struct stat st {};
-  if (::stat(path.c_str(), &st) != 0)
-    throw Error(ErrorCode::kNotFound, "quality spec '" + path + "' does not exist");
-  if (!S_ISREG(st.st_mode)) bad_spec(path, "not a regular file");
-  if (st.st_size > kMaxSpecFileBytes)
-    bad_spec(path, "larger than the limit of " + std::to_string(kMaxSpecFileBytes) + " bytes");
-  std::ifstream in(path, std::ios::binary);
-  if (!in) throw Error(ErrorCode::kIo, "quality spec '" + path + "' cannot be read");
-  std::ostringstream text;
-  text << in.rdbuf();
-  return text.str();
 }
 
 ParameterLimit parameter_limit(const std::string& path, const std::string& name,
@@ -73,7 +57,9 @@ ParameterLimit parameter_limit(const std::string& path, const std::string& name,
 
 QualitySpec read_quality_spec(const std::string& path,
                               const std::vector<std::string>& parameter_names) {
-  return parse_quality_spec(read_file_bounded(path), path, parameter_names);
+  return parse_quality_spec(read_regular_file(path, static_cast<size_t>(kMaxSpecFileBytes),
+                                              "quality spec", ErrorCode::kNotFound),
+                            path, parameter_names);
 }
 
 QualitySpec parse_quality_spec(const std::string& text, const std::string& path,
