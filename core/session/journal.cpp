@@ -90,6 +90,23 @@ KeyframeRecord keyframe_of(const Json& j) {
   return r;
 }
 
+// A keyframe record without its image: "type", "index", "time" and the record's fields (the
+// doubles written so that they read back bit for bit).
+Json keyframe_json_object(int index, const KeyframeRecord& r) {
+  return {{"type", "keyframe"},
+          {"index", index},
+          {"time", utc_now_iso8601()},
+          {"state_before", engine_state_name(r.state_before)},
+          {"target_param", r.target_param},
+          {"state_after", engine_state_name(r.state_after)},
+          {"estimate_after", r.estimate_after},
+          {"converged_after", r.converged_after},
+          {"failure", r.failure},
+          {"ids", r.observation.ids},
+          {"image_points", points_json(r.observation.image_points)},
+          {"board_points", points_json(r.observation.board_points)}};
+}
+
 JournalHeader header_of(const Json& j) {
   if (j.at("format").get<int>() != kFormat) {
     throw Error(ErrorCode::kInvalidArgument,
@@ -234,19 +251,22 @@ void JournalWriter::append_engine(cv::Size size, const std::map<std::string, std
   append(j.dump(-1, ' ', false, Json::error_handler_t::replace));
 }
 
+std::string keyframe_json(int index, const KeyframeRecord& r) {
+  return keyframe_json_object(index, r).dump(-1, ' ', false, Json::error_handler_t::replace);
+}
+
+KeyframeRecord keyframe_from_json(const std::string& text) {
+  Json j;
+  try {
+    j = Json::parse(text);
+    return keyframe_of(j);
+  } catch (const Json::exception& e) {
+    throw Error(ErrorCode::kInvalidArgument, std::string("keyframe record: ") + e.what());
+  }
+}
+
 void JournalWriter::append_keyframe(int index, const KeyframeRecord& r, const cv::Mat& image) {
-  Json j = {{"type", "keyframe"},
-            {"index", index},
-            {"time", utc_now_iso8601()},
-            {"state_before", engine_state_name(r.state_before)},
-            {"target_param", r.target_param},
-            {"state_after", engine_state_name(r.state_after)},
-            {"estimate_after", r.estimate_after},
-            {"converged_after", r.converged_after},
-            {"failure", r.failure},
-            {"ids", r.observation.ids},
-            {"image_points", points_json(r.observation.image_points)},
-            {"board_points", points_json(r.observation.board_points)}};
+  Json j = keyframe_json_object(index, r);
   if (!image.empty()) {
     std::vector<uchar> png;
     if (cv::imencode(".png", image, png)) j["image_png"] = base64(png);

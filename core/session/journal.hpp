@@ -53,6 +53,12 @@ struct JournalContents {
 // A damaged tail is not an error: valid_bytes and damage say what was kept.
 JournalContents read_journal(const std::string& path);
 
+// One keyframe as the journal's JSON record (without the image), and back: the record a
+// traceable calibration record (core/records) stores per keyframe. keyframe_from_json throws
+// Error(kInvalidArgument) naming what is wrong.
+std::string keyframe_json(int index, const KeyframeRecord& record);
+KeyframeRecord keyframe_from_json(const std::string& text);
+
 // Appends records to a journal; every append is durable (fdatasync) when it returns and throws
 // Error(kIo) naming the file and the cause (e.g. ENOSPC) if it is not.
 class JournalWriter {
