@@ -59,6 +59,7 @@ void CalibrationSession::ensure_engine(cv::Size size) {
     return;
   }
   engine_ = std::make_unique<CalibrationEngine>(size, options_);
+  if (observer_.on_engine) observer_.on_engine(size, locked_);
   restore_from_journal(size);
   board_clock_ = std::chrono::steady_clock::now();
   engine_->set_event_callback([this](const EngineEvent& e) { emit({SessionEvent::Kind::kEngine, e, ""}); });
@@ -114,6 +115,10 @@ FrameReport CalibrationSession::process(const cv::Mat& image, std::shared_ptr<vo
   if (r.board_visible) board_clock_ = std::chrono::steady_clock::now();
   check_board_timeout();
   journal_frame(state_before, keyframes_before, image);
+  if (observer_.on_keyframe && engine_->keyframes() > keyframes_before) {
+    const int n = engine_->keyframes();
+    observer_.on_keyframe(n, engine_->keyframe_record(n - 1, state_before), image);
+  }
   camera_->guide(engine_->guidance_info());
   if (camera_->take_pose_reached() && !finished()) {
     try {
@@ -239,6 +244,11 @@ void CalibrationSession::open_journal(const std::string& path, const std::string
   journal_ = JournalWriter::create(path, header_for(camera, config));
 }
 
+void CalibrationSession::set_keyframe_observer(KeyframeObserver observer) {
+  if (engine_) throw Error(ErrorCode::kState, "session: a keyframe observer is set before the first frame");
+  observer_ = std::move(observer);
+}
+
 void CalibrationSession::restore_from_journal(cv::Size size) {
   if (!journal_) return;
   if (resumed_.image_size.width > 0 && resumed_.image_size != size) {
@@ -253,6 +263,10 @@ void CalibrationSession::restore_from_journal(cv::Size size) {
     journal_failed(e);
   }
   if (!resumed_.keyframes.empty()) journal_status_.identical = engine_->restore(resumed_.keyframes);
+  if (observer_.on_keyframe) {
+    for (size_t i = 0; i < resumed_.keyframes.size(); ++i)
+      observer_.on_keyframe(static_cast<int>(i) + 1, resumed_.keyframes[i], cv::Mat());
+  }
   resumed_ = JournalContents{};
 }
 

@@ -74,6 +74,17 @@ class CalibrationSession {
   };
   const JournalStatus& journal_status() const { return journal_status_; }
 
+  // What the journal receives, for a second keeper (the calibration record, core/records): the
+  // image size and locked settings when the engine is made, then every keyframe the engine keeps
+  // (1-based index, the record, the frame; the keyframes a journal restores come first, without
+  // frames). Set before the first frame (else Error(kState)). The callbacks must not throw: a
+  // keeper's failure is the keeper's to report.
+  struct KeyframeObserver {
+    std::function<void(cv::Size, const std::map<std::string, std::string>&)> on_engine;
+    std::function<void(int, const KeyframeRecord&, const cv::Mat&)> on_keyframe;
+  };
+  void set_keyframe_observer(KeyframeObserver observer);
+
  private:
   void ensure_engine(cv::Size size);
   FrameReport process(const cv::Mat& image, std::shared_ptr<void> hold);
@@ -102,6 +113,7 @@ class CalibrationSession {
   bool journal_images_ = false;
   JournalContents resumed_;  // the journal read at open_journal, until the first frame
   JournalStatus journal_status_;
+  KeyframeObserver observer_;
   // Since when no board has been seen: the camera's start (until the first frame), the first
   // frame, the last frame showing the board, the camera's return after a disconnect.
   std::chrono::steady_clock::time_point board_clock_;

@@ -197,7 +197,7 @@ Json summary(const Json& result, double wall_ms) {
   }
   for (const char* k : {"eps_test", "eps_gt", "ground_truth", "operator_attempts", "failure", "journal",
                         "resumed_keyframes", "resume_identical", "journal_note", "seconds",
-                        "verdict", "verdict_reasons", "spec"}) {
+                        "verdict", "verdict_reasons", "spec", "records", "run_id", "records_note"}) {
     if (result.contains(k)) j[k] = result[k];
   }
   j["camera"] = result.value("camera", Json());
@@ -211,11 +211,19 @@ int calibration_exit_code(const Json& j) {
 }
 
 void print_verdict(const Json& j) {
-  if (!j.contains("verdict")) return;
-  std::printf("quality spec %s: %s\n", j.value("spec", std::string()).c_str(),
-              j.value("verdict", "") == "pass" ? "PASS" : "FAIL");
-  for (const auto& r : j.value("verdict_reasons", Json::array()))
-    if (r.is_string()) std::printf("  %s\n", r.get<std::string>().c_str());
+  if (j.contains("verdict")) {
+    std::printf("quality spec %s: %s\n", j.value("spec", std::string()).c_str(),
+                j.value("verdict", "") == "pass" ? "PASS" : "FAIL");
+    for (const auto& r : j.value("verdict_reasons", Json::array()))
+      if (r.is_string()) std::printf("  %s\n", r.get<std::string>().c_str());
+  }
+  // The record (--records), where there is one to speak of.
+  if (j.contains("records_note") && j["records_note"].is_string()) {
+    std::printf("record: %s\n", j["records_note"].get<std::string>().c_str());
+  } else if (j.contains("run_id") && j["run_id"].is_string()) {
+    std::printf("recorded as run %s in %s\n", j["run_id"].get<std::string>().c_str(),
+                j.value("records", std::string()).c_str());
+  }
 }
 
 double num_or(const Json& j, const std::string& key, double def) {

@@ -93,7 +93,7 @@ void print_event_line(void* user, const char* kind, const char* payload);
 // it converged but its quality verdict is "fail", else kOk.
 int calibration_exit_code(const Json& j);
 // Text mode: the quality verdict line(s), if the result has a verdict.
-void print_verdict(const Json& j);
+void print_verdict(const Json& j);  // and the record's run id or note
 
 // The summary every calibration command prints with --json; the intrinsics are the result's
 // covariance_order (whatever the lens model's parameters are).

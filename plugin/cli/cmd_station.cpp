@@ -147,6 +147,8 @@ void calibrate_one(StationShared* shared, StationJob* job, Clock::time_point t0)
   Json& out = job->outcome;
   Json config = shared->config;
   config["journal"] = job->journal;
+  // Every camera's run is recorded, by default in DIR/records.sqlite (core/records).
+  if (!config.contains("records")) config["records"] = o.out_dir + "/records.sqlite";
   Session s(shared->ctx, job->uri, config);
   const Json camera = fetch_status(s.get())["camera"];
   out["camera"] = camera;
@@ -182,6 +184,7 @@ void calibrate_one(StationShared* shared, StationJob* job, Clock::time_point t0)
   out["journal"] = result.value("journal", Json());
   out["resumed_keyframes"] = result.value("resumed_keyframes", 0);
   out["resume_identical"] = result.value("resume_identical", Json());
+  for (const char* k : {"run_id", "records", "records_note"}) out[k] = result.value(k, Json());
   for (const char* k : {"verdict", "verdict_reasons", "spec"})
     if (result.contains(k)) out[k] = result[k];
   out["file"] = file;
@@ -304,6 +307,9 @@ int run_station(const StationOptions& o) {
   }
   if (o.session->config().contains("journal")) {
     throw UsageError{"station keeps one journal per camera in DIR/journal/; --journal is for one camera"};
+  }
+  if (o.session->config().contains("run_id")) {
+    throw UsageError{"station gives each camera a run id of its own; --run-id is for one camera"};
   }
   std::filesystem::create_directories(o.out_dir + "/journal", ec);
   const std::string sum_path = o.out_dir + "/summary.json";

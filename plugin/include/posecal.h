@@ -282,7 +282,14 @@ typedef struct posecal_image {
  *   JOURNAL.<UTC time>.old and a new one started). docs/c-api.md, "Journal";
  *   "spec" (unset; a JSON file of quality limits, read at open: the result gets "verdict"
  *   "pass"/"fail" and "verdict_reasons"; a malformed file is POSECAL_E_INVALID_ARGUMENT naming
- *   the file and the key; docs/c-api.md, "Quality gate").
+ *   the file and the key; docs/c-api.md, "Quality gate");
+ *   "records" (unset; a SQLite file, created if needed: the run is recorded there, its
+ *   identity at open, every keyframe (detections and image) in its own transaction as it is
+ *   captured, the result and verdict when the session finishes or is closed; status and result
+ *   say "records", "run_id" and "records_note"; a store that cannot be opened or written does
+ *   not stop the calibration: "records_note" says why it was not recorded), "run_id" (unset: a
+ *   new random UUID; a run id already in the store is not recorded again), "station_id",
+ *   "operator_id", "lens_id" (unset; recorded with the run). docs/c-api.md, "Records".
  * An unknown key is POSECAL_E_INVALID_ARGUMENT. Opening a camera may block up to ~3 s. The
  * camera starts streaming at the first posecal_session_step. */
 POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char* camera_uri,

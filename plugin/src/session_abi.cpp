@@ -19,6 +19,7 @@
 #include "json_report.hpp"
 #include "lens/lens_models.hpp"
 #include "quality_gate.hpp"
+#include "records/record_store.hpp"
 #include "session_config.hpp"
 #include "posecal.h"
 #include "session/session.hpp"
@@ -46,6 +47,11 @@ struct posecal_session {
   std::optional<double> finished_seconds;
   // The "spec" key's quality specification, if any: the result's verdict.
   std::optional<abi::QualitySpec> spec;
+  // The "records" key's store (core/records) and this run's id. A store that cannot be opened or
+  // written does not stop the calibration: the record stops, records_note says why.
+  std::unique_ptr<RecordStore> records;
+  std::string records_location, run_id, records_note;
+  bool record_finished = false;
   // sim:// only: the fixed test set, rendered once, and the evaluation of the last result.
   std::vector<Observation> test_set;
   int evaluated_keyframes = -1;
@@ -83,6 +89,25 @@ bool was_interrupted(posecal_session* s) {
   if (!s->interrupted || s->session->finished()) return false;
   if (s->finished.empty()) mark_finished(s);
   return true;
+}
+
+// The record's part of status and result: the store, the run id, what went wrong.
+void records_json(const posecal_session* s, Json* j) {
+  (*j)["records"] = s->records_location.empty() ? Json(nullptr) : Json(s->records_location);
+  (*j)["run_id"] = s->run_id.empty() ? Json(nullptr) : Json(s->run_id);
+  (*j)["records_note"] = s->records_note.empty() ? Json(nullptr) : Json(s->records_note);
+}
+
+// One write to the record store; a failure stops the record (the calibration goes on).
+template <class F>
+void record(posecal_session* s, F&& write) {
+  if (!s->records) return;
+  try {
+    write(*s->records);
+  } catch (const std::exception& e) {
+    s->records.reset();
+    s->records_note = std::string("the record stopped: ") + e.what();
+  }
 }
 
 // The journal's part of status and result: where it is, what a resume restored.
@@ -206,6 +231,15 @@ void note_finished(posecal_session* s) {
   if (s->session->finished() && s->finished.empty()) mark_finished(s);
 }
 
+void finish_record(posecal_session* s, const std::string& state);
+
+// The record's state when the session finished by itself: converged or failed.
+void note_finished_record(posecal_session* s) {
+  if (!s->records || s->record_finished || !s->session->finished()) return;
+  const CalibrationEngine* eng = s->session->engine_ptr();
+  finish_record(s, eng ? engine_state_name(eng->state()) : "failed");
+}
+
 Json status_json(posecal_session* s) {
   Json j;
   const CalibrationSession& cs = *s->session;
@@ -216,6 +250,7 @@ Json status_json(posecal_session* s) {
   j["interrupted"] = was_interrupted(s);
   j["finished"] = cs.finished() || j["interrupted"].get<bool>();
   journal_json(cs, &j);
+  records_json(s, &j);
   if (!eng) {
     j["state"] = cs.no_frame_failure().empty() ? "waiting_for_board" : "failed";
     if (!cs.no_frame_failure().empty()) j["failure"] = cs.no_frame_failure();
@@ -279,6 +314,70 @@ const CalibrationResult& require_result(posecal_session* s) {
   return *eng->result();
 }
 
+// The result JSON (posecal_session_result; the record's result): Error(kState) before a
+// calibration exists.
+Json result_json(posecal_session* session) {
+  const CalibrationResult& r = require_result(session);
+  CalibrationEngine& eng = session->session->engine();
+  Json j = abi::calibration_json(r);
+  j["state"] = engine_state_name(eng.state());
+  j["converged"] = eng.converged();
+  j["interrupted"] = was_interrupted(session);
+  journal_json(*session->session, &j);
+  if (eng.state() == EngineState::kFailed) j["failure"] = eng.failure_reason();
+  j["keyframes"] = eng.keyframes();
+  j["frames_processed"] = session->session->frames_processed();
+  j["target"] = eng.options().board.to_string();
+  j["camera"] = abi::device_json(session->camera);
+  j["locked_settings"] = session->session->locked_settings();
+  j["started"] = session->started;
+  j["finished"] = session->finished.empty() ? Json(nullptr) : Json(session->finished);
+  const double seconds = session->finished_seconds.value_or(
+      std::chrono::duration<double>(std::chrono::steady_clock::now() - session->opened).count());
+  j["seconds"] = abi::number(seconds);
+  Json conv = Json::object();
+  for (const auto& p : eng.parameters()) conv[p.name] = p.converged;
+  j["parameter_converged"] = conv;
+  if (SimCamera* sim = as_sim_camera(&session->session->camera())) {
+    if (session->test_set.empty()) session->test_set = abi::sim_test_set(sim->sim_options());
+    if (session->evaluated_keyframes != eng.keyframes()) {
+      session->evaluation = abi::evaluation_json(r.model, session->test_set, &sim->truth());
+      session->evaluated_keyframes = eng.keyframes();
+    }
+    j.update(session->evaluation);
+    Json truth;
+    for (int i = 0; i < sim->truth().num_params(); ++i) {
+      truth[sim->truth().param_names()[i]] = sim->truth().params()[i];
+    }
+    j["ground_truth"] = truth;
+    Json att = Json::object();
+    for (const auto& [kind, a] : sim->op().attempts())
+      att[kind] = {{"attempts", a.attempts}, {"reached", a.reached}};
+    j["operator_attempts"] = att;
+  }
+  if (session->spec) j.update(abi::quality_verdict(*session->spec, j, eng.keyframes(), seconds));
+  records_json(session, &j);
+  return j;
+}
+
+// Completes the run's record once: its state, the result JSON (empty before a calibration
+// exists), the verdict and the expected error.
+void finish_record(posecal_session* s, const std::string& state) {
+  if (!s->records || s->record_finished) return;
+  s->record_finished = true;
+  Json j = Json::object();
+  try {
+    j = result_json(s);
+  } catch (const Error&) {
+    // No calibration yet (fewer than two keyframes): the record keeps the state alone.
+  }
+  std::optional<double> expected;
+  if (j.contains("expected_error_px") && j["expected_error_px"].is_number())
+    expected = j["expected_error_px"].get<double>();
+  const std::string verdict = j.contains("verdict") && j["verdict"].is_string() ? j["verdict"].get<std::string>() : "";
+  record(s, [&](RecordStore& r) { r.finish_run(s->run_id, state, abi::to_text(j), verdict, expected); });
+}
+
 }  // namespace
 
 namespace {
@@ -297,6 +396,49 @@ void save_session(posecal_session* session, const char* path, const char* format
   extras.converged = eng.converged();
   extras.interrupted = was_interrupted(session);
   abi::save_calibration(path, r, format, extras);
+}
+
+}  // namespace
+
+namespace {
+
+// The "records" key: opens the store and begins the run's record; every keyframe is added as
+// the engine keeps it (one transaction each). A store that cannot be opened does not stop the
+// calibration: the session goes on unrecorded and says why (records_note).
+void open_record(posecal_session* s, const SessionOptions& o, const Json& config) {
+  s->records_location = o.records;
+  s->run_id = o.run_id.empty() ? new_run_id() : o.run_id;
+  RunIdentity id;
+  id.run_id = s->run_id;
+  id.station_id = o.station_id;
+  id.operator_id = o.operator_id;
+  id.lens_id = o.lens_id;
+  id.camera_uri = s->camera.uri;
+  id.camera_id = s->camera.id;
+  id.camera_vendor = s->camera.vendor;
+  id.camera_model = s->camera.model;
+  id.camera_serial = s->camera.serial;
+  id.camera_device_version = s->camera.transport;
+  id.posecal_version = POSECAL_VERSION_STRING;
+  id.abi_version = std::to_string(POSECAL_ABI_VERSION);
+  id.config = abi::to_text(config);
+  id.started = utc_now_iso8601();
+  try {
+    s->records = RecordStore::open(o.records);
+    s->records->begin_run(id);
+  } catch (const std::exception& e) {
+    s->records.reset();
+    s->records_note = std::string("not recorded: ") + e.what();
+    return;
+  }
+  CalibrationSession::KeyframeObserver observer;
+  observer.on_engine = [s](cv::Size size, const std::map<std::string, std::string>& locked) {
+    record(s, [&](RecordStore& r) { r.set_engine(s->run_id, size, locked); });
+  };
+  observer.on_keyframe = [s](int index, const KeyframeRecord& k, const cv::Mat& image) {
+    record(s, [&](RecordStore& r) { r.add_keyframe(s->run_id, index, k, image); });
+  };
+  s->session->set_keyframe_observer(std::move(observer));
 }
 
 }  // namespace
@@ -355,10 +497,13 @@ POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char
       // The config a journal is resumed with must be the one it was recorded with, but for
       // the journal's own keys.
       Json recorded = c;
-      for (const char* k : {"journal", "journal_images", "resume", "spec"}) recorded.erase(k);
+      for (const char* k : {"journal", "journal_images", "resume", "spec", "records", "run_id",
+                            "station_id", "operator_id", "lens_id"})
+        recorded.erase(k);
       s->session->open_journal(so_config.journal, abi::to_text(recorded), so_config.journal_images,
                                so_config.resume);
     }
+    if (!so_config.records.empty()) open_record(s.get(), so_config, c);
     posecal_session* raw = s.get();
     s->session->set_event_callback([raw](const SessionEvent& e) { deliver(raw, e); });
     s->started = utc_now_iso8601();
@@ -372,6 +517,10 @@ POSECAL_API void posecal_session_close(posecal_session* session) noexcept {
     if (session && session->in_callback) {
       throw Error(ErrorCode::kState,
                   "called from the session's event callback: the session was not closed");
+    }
+    if (session && session->records && !session->record_finished) {
+      // Closed before it finished by itself: interrupted by the host, or given up.
+      finish_record(session, session->interrupted ? "interrupted" : "closed");
     }
     delete session;
   });
@@ -392,6 +541,7 @@ POSECAL_API posecal_status posecal_session_step(posecal_session* session, int ti
     check_running(session);
     const StepStatus st = session->session->step(timeout_ms);
     note_finished(session);
+    note_finished_record(session);
     switch (st) {
       case StepStatus::kFrame:
         return POSECAL_OK;
@@ -428,6 +578,7 @@ POSECAL_API posecal_status posecal_session_feed(posecal_session* session,
       session->session->feed(m);
     }
     note_finished(session);
+    note_finished_record(session);
     return POSECAL_OK;
   });
 }
@@ -550,48 +701,10 @@ POSECAL_API posecal_status posecal_session_result(posecal_session* session, char
   return guarded(__func__, [&] {
     require(session, "session");
     require(size, "size");
-    const CalibrationResult& r = require_result(session);
-    CalibrationEngine& eng = session->session->engine();
-    Json j = abi::calibration_json(r);
-    j["state"] = engine_state_name(eng.state());
-    j["converged"] = eng.converged();
-    j["interrupted"] = was_interrupted(session);
-    journal_json(*session->session, &j);
-    if (eng.state() == EngineState::kFailed) j["failure"] = eng.failure_reason();
-    j["keyframes"] = eng.keyframes();
-    j["frames_processed"] = session->session->frames_processed();
-    j["target"] = eng.options().board.to_string();
-    j["camera"] = abi::device_json(session->camera);
-    j["locked_settings"] = session->session->locked_settings();
-    j["started"] = session->started;
-    j["finished"] = session->finished.empty() ? Json(nullptr) : Json(session->finished);
-    const double seconds = session->finished_seconds.value_or(
-        std::chrono::duration<double>(std::chrono::steady_clock::now() - session->opened).count());
-    j["seconds"] = abi::number(seconds);
-    Json conv = Json::object();
-    for (const auto& p : eng.parameters()) conv[p.name] = p.converged;
-    j["parameter_converged"] = conv;
-    if (SimCamera* sim = as_sim_camera(&session->session->camera())) {
-      if (session->test_set.empty()) session->test_set = abi::sim_test_set(sim->sim_options());
-      if (session->evaluated_keyframes != eng.keyframes()) {
-        session->evaluation = abi::evaluation_json(r.model, session->test_set, &sim->truth());
-        session->evaluated_keyframes = eng.keyframes();
-      }
-      j.update(session->evaluation);
-      Json truth;
-      for (int i = 0; i < sim->truth().num_params(); ++i) {
-        truth[sim->truth().param_names()[i]] = sim->truth().params()[i];
-      }
-      j["ground_truth"] = truth;
-      Json att = Json::object();
-      for (const auto& [kind, a] : sim->op().attempts())
-        att[kind] = {{"attempts", a.attempts}, {"reached", a.reached}};
-      j["operator_attempts"] = att;
-    }
-    if (session->spec) j.update(abi::quality_verdict(*session->spec, j, eng.keyframes(), seconds));
-    return abi::copy_out(abi::to_text(j), buf, size);
+    return abi::copy_out(abi::to_text(result_json(session)), buf, size);
   });
 }
+
 
 POSECAL_API posecal_status posecal_session_save(posecal_session* session,
                                                 const char* path) noexcept {

@@ -22,6 +22,8 @@
 
 #include "board/board.hpp"
 #include "io/model_file.hpp"
+#include "records/record_store.hpp"
+#include "session/journal.hpp"
 
 namespace fs = std::filesystem;
 
@@ -563,6 +565,26 @@ TEST(Cli, StationOfFourSimulatedCamerasConverges) {
   std::ifstream summary(dir + "/summary.json");
   ASSERT_TRUE(summary.good());
   EXPECT_EQ(nlohmann::json::parse(summary)["converged"], 4);
+  // Every camera's run is recorded in DIR/records.sqlite (four writers on one file): complete,
+  // converged, its keyframes with their detections and frames.
+  auto store = posecal::RecordStore::open(dir + "/records.sqlite");
+  EXPECT_EQ(store->list_runs().size(), 4u);
+  for (const auto& c : j["cameras"]) {
+    ASSERT_TRUE(c["run_id"].is_string()) << c.dump();
+    EXPECT_TRUE(c["records_note"].is_null()) << c.dump();
+    const posecal::RunRecord rec = store->get_run(c["run_id"].get<std::string>());
+    EXPECT_EQ(rec.summary.state, "converged");
+    EXPECT_EQ(rec.summary.identity.camera_id, c["camera"]["id"].get<std::string>());
+    EXPECT_EQ(rec.image_width, 1280);
+    ASSERT_EQ(static_cast<int>(rec.keyframes.size()), c["keyframes"].get<int>());
+    for (const posecal::StoredKeyframe& k : rec.keyframes) {
+      EXPECT_GT(posecal::keyframe_from_json(k.record).observation.ids.size(), 0u);
+      EXPECT_FALSE(k.image_png.empty());
+    }
+    const auto result = nlohmann::json::parse(rec.result);
+    EXPECT_EQ(result["keyframes"], c["keyframes"]);
+    EXPECT_EQ(result["run_id"], c["run_id"]);
+  }
   // The cameras ran concurrently: the whole station took less than their sum.
   std::printf("station: %.1f s wall, %.1f s summed over the cameras\n", wall_s, sum_camera_s);
   EXPECT_LT(wall_s, sum_camera_s);
@@ -1051,4 +1073,44 @@ TEST(Cli, QualitySpecGivesAVerdictWithReasonsAndExitCodes) {
   r = run("simulate --seed 1 --spec " + dir + "/missing.json");
   EXPECT_EQ(r.status, 2) << r.out;
   EXPECT_NE(r.out.find("does not exist"), std::string::npos) << r.out;
+}
+
+// Records (issue 15): simulate --records keeps the run with the given ids; the same run id again
+// is not recorded twice (the first record is intact); a store that cannot be opened does not
+// cost the calibration, and the result says why it was not recorded.
+TEST(Cli, RecordsKeepTheRunAndNeverCostTheCalibration) {
+  const std::string dir = temp_dir("posecal_records");
+  const std::string db = dir + "/records.sqlite";
+  const std::string base = "simulate --seed 2 --json --records " + db;
+  CliRun r = run(base + " --station-id line1-st2 --operator-id op7 --lens-id M12-6mm", true);
+  ASSERT_EQ(r.status, 0) << r.out;
+  auto j = nlohmann::json::parse(r.out);
+  ASSERT_TRUE(j["run_id"].is_string()) << r.out;
+  const std::string run_id = j["run_id"];
+  EXPECT_EQ(j["records"], db);
+  EXPECT_TRUE(j["records_note"].is_null());
+  {
+    auto store = posecal::RecordStore::open(db);
+    const posecal::RunRecord rec = store->get_run(run_id);
+    EXPECT_EQ(rec.summary.state, "converged");
+    EXPECT_EQ(rec.summary.identity.station_id, "line1-st2");
+    EXPECT_EQ(rec.summary.identity.operator_id, "op7");
+    EXPECT_EQ(rec.summary.identity.lens_id, "M12-6mm");
+    EXPECT_EQ(static_cast<int>(rec.keyframes.size()), j["keyframes"].get<int>());
+    ASSERT_TRUE(rec.summary.expected_error_px.has_value());
+    EXPECT_EQ(*rec.summary.expected_error_px, j["expected_error_px"].get<double>());
+  }
+  r = run(base + " --run-id " + run_id, true);
+  ASSERT_EQ(r.status, 0) << r.out;
+  j = nlohmann::json::parse(r.out);
+  ASSERT_TRUE(j["records_note"].is_string()) << r.out;
+  EXPECT_NE(j["records_note"].get<std::string>().find("already recorded"), std::string::npos);
+  EXPECT_EQ(posecal::RecordStore::open(db)->get_run(run_id).summary.identity.station_id, "line1-st2");
+
+  r = run("simulate --seed 2 --json --records " + dir + "/no/such/dir/r.sqlite", true);
+  ASSERT_EQ(r.status, 0) << r.out;  // converged all the same
+  j = nlohmann::json::parse(r.out);
+  ASSERT_TRUE(j["records_note"].is_string()) << r.out;
+  EXPECT_NE(j["records_note"].get<std::string>().find("no/such/dir/r.sqlite"), std::string::npos);
+  EXPECT_TRUE(j["converged"].get<bool>());
 }
