@@ -14,6 +14,7 @@ Command add_grab(CLI::App* app);
 Command add_features(CLI::App* app);
 Command add_board(CLI::App* app);
 Command add_list(CLI::App* app);
+Command add_records(CLI::App* app);  // list, show, resolve, export
 
 // The text of `posecal version` and `posecal --version`.
 std::string version_text();

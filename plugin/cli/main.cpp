@@ -39,6 +39,7 @@ Commands add_commands(CLI::App* app) {
   commands["simulate"] = add_simulate(app);
   commands["board"] = add_board(app);
   commands["list"] = add_list(app);
+  commands["records"] = add_records(app);
   app->add_subcommand("version", "print the version and the ABI version");
   commands["version"] = [] {
     std::printf("%s\n", version_text().c_str());

@@ -158,6 +158,42 @@ POSECAL_API posecal_status posecal_write_target(const char* target_spec, const c
 POSECAL_API posecal_status posecal_write_target_ex(const char* target_spec, const char* path,
                                                    const char* options_json) POSECAL_NOEXCEPT;
 
+/* Calibration records (session key "records"; docs/c-api.md, "Records"). `location` is the
+ * store: a SQLite file written by sessions with "records". Any thread; each call opens the store
+ * itself (waiting up to 10 s for another process's write). POSECAL_E_IO names the store and
+ * the cause if it cannot be opened or is not a posecal record database; POSECAL_E_NOT_FOUND
+ * for a run id it does not hold (a unique prefix of a run id is accepted, an ambiguous one is
+ * POSECAL_E_INVALID_ARGUMENT); POSECAL_E_UNSUPPORTED for a postgresql:// location (not built
+ * yet).
+ * posecal_records_list: a JSON array of the runs, newest first, each {"run_id", "station_id",
+ * "operator_id", "lens_id", "camera" {uri, id, vendor, model, serial, transport},
+ * "posecal_version", "abi_version", "started", "finished" (null while running or after a
+ * kill), "state" (running, converged, failed, interrupted, closed), "verdict" (null, "pass",
+ * "fail"), "expected_error_px" (null or a number), "keyframes"}. */
+POSECAL_API posecal_status posecal_records_list(const char* location, char* buf,
+                                                size_t* size) POSECAL_NOEXCEPT;
+/* One run: the list's fields and "config" (the session config), "image_width",
+ * "image_height", "locked_settings", "result" (the result JSON of posecal_session_result, null
+ * if the run ended without a calibration) and "keyframes" [{"index", "time", "corners",
+ * "state_before", "state_after", "image_png_bytes"}]. */
+POSECAL_API posecal_status posecal_records_show(const char* location, const char* run_id,
+                                                char* buf, size_t* size) POSECAL_NOEXCEPT;
+/* Re-solves a run from its stored detections, as a journal's resume does (the recorded config,
+ * each keyframe in order with the same warm starts): {"run_id", "keyframes", "recorded_by" and
+ * "resolved_by" (posecal versions), "identical" (true when the recomputed intrinsics equal, bit
+ * for bit, both the last keyframe's estimate and the stored result), "identical_to_last_keyframe",
+ * "identical_to_result", "recomputed" {name: value}, "stored" {name: value} or null}. Takes
+ * about as long as the run's last recalibrations (well under a second for 10 keyframes); a
+ * buffer too small recomputes on the retry. POSECAL_E_STATE for a run of fewer than two
+ * keyframes. */
+POSECAL_API posecal_status posecal_records_resolve(const char* location, const char* run_id,
+                                                   char* buf, size_t* size) POSECAL_NOEXCEPT;
+/* Writes the run's re-solved calibration as a model file (format: a name of
+ * posecal_session_save_as, or NULL/"" by the extension), atomically. */
+POSECAL_API posecal_status posecal_records_export(const char* location, const char* run_id,
+                                                  const char* path,
+                                                  const char* format) POSECAL_NOEXCEPT;
+
 /* Callback of session events (posecal_session_set_callback) and of offline progress
  * (posecal_calibrate_images_ex): a kind and a JSON payload, valid only during the call. */
 typedef void (*posecal_event_fn)(void* user_data, const char* kind, const char* payload_json);

@@ -375,7 +375,8 @@ void finish_record(posecal_session* s, const std::string& state) {
   if (j.contains("expected_error_px") && j["expected_error_px"].is_number())
     expected = j["expected_error_px"].get<double>();
   const std::string verdict = j.contains("verdict") && j["verdict"].is_string() ? j["verdict"].get<std::string>() : "";
-  record(s, [&](RecordStore& r) { r.finish_run(s->run_id, state, abi::to_text(j), verdict, expected); });
+  const std::string text = j.empty() ? std::string() : abi::to_text(j);
+  record(s, [&](RecordStore& r) { r.finish_run(s->run_id, state, text, verdict, expected); });
 }
 
 }  // namespace

@@ -724,6 +724,49 @@ static void test_session_states(posecal_context* ctx) {
   posecal_session_close(s);
 }
 
+/* Records: a session interrupted after a few frames is recorded as "interrupted"; the readers
+ * refuse bad arguments, unreadable stores and unknown runs, each naming the cause. */
+static void test_records(posecal_context* ctx) {
+  char db[600], config[800], buf[16384], model[700];
+  snprintf(db, sizeof db, "%s", path_in("records.sqlite"));
+  snprintf(model, sizeof model, "%s", path_in("record.yml"));
+  snprintf(config, sizeof config, "{\"records\": \"%s\", \"run_id\": \"misuse-1\"}", db);
+  posecal_session* s = NULL;
+  EXPECT_OK(posecal_session_open(ctx, "sim://?seed=2", config, &s));
+  if (!s) return;
+  for (int i = 0; i < 3; ++i) EXPECT_OK(posecal_session_step(s, 5000));
+  EXPECT_OK(posecal_session_interrupt(s));
+  size_t size = sizeof buf;
+  EXPECT_OK(posecal_session_status(s, buf, &size));
+  CHECK(strstr(buf, "\"run_id\":\"misuse-1\"") != NULL);
+  posecal_session_close(s);
+
+  size = sizeof buf;
+  EXPECT_OK(posecal_records_list(db, buf, &size));
+  CHECK(strstr(buf, "\"state\":\"interrupted\"") != NULL);
+  size = sizeof buf;
+  EXPECT_OK(posecal_records_show(db, "misuse", buf, &size)); /* a unique prefix */
+  CHECK(strstr(buf, "\"result\":null") != NULL);            /* no calibration yet */
+  EXPECT_INVALID(posecal_records_list(NULL, buf, &size));
+  EXPECT_INVALID(posecal_records_list(db, buf, NULL));
+  EXPECT_INVALID(posecal_records_show(db, NULL, buf, &size));
+  EXPECT_INVALID(posecal_records_show(db, "", buf, &size));
+  EXPECT_INVALID(posecal_records_resolve(NULL, "misuse-1", buf, &size));
+  EXPECT_INVALID(posecal_records_export(db, "misuse-1", NULL, NULL));
+  EXPECT_STATUS(posecal_records_show(db, "no-such-run", buf, &size), POSECAL_E_NOT_FOUND);
+  EXPECT_MESSAGE("no-such-run");
+  EXPECT_STATUS(posecal_records_resolve(db, "misuse-1", buf, &size), POSECAL_E_STATE);
+  EXPECT_MESSAGE("keyframes");
+  EXPECT_STATUS(posecal_records_export(db, "misuse-1", model, NULL), POSECAL_E_STATE);
+  EXPECT_STATUS(posecal_records_list(path_in("empty"), buf, &size), POSECAL_E_IO); /* a directory */
+  EXPECT_MESSAGE("empty");
+  EXPECT_STATUS(posecal_records_list("postgresql://127.0.0.1/r", buf, &size), POSECAL_E_UNSUPPORTED);
+  char small[8];
+  size = sizeof small;
+  EXPECT_STATUS(posecal_records_list(db, small, &size), POSECAL_E_BUFFER_TOO_SMALL);
+  CHECK(size > sizeof small);
+}
+
 int main(int argc, char** argv) {
   if (argc != 2) {
     fprintf(stderr, "usage: %s WORK_DIR\n", argv[0]);
@@ -756,6 +799,8 @@ int main(int argc, char** argv) {
   lap("session states");
   test_evaluate(ctx, path_in("result.yml"));
   lap("evaluate");
+  test_records(ctx);
+  lap("records");
   posecal_context_destroy(ctx);
   printf("%d checks, %d failures\n", g_checks, g_failures);
   return g_failures == 0 ? 0 : 1;

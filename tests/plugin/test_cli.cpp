@@ -584,7 +584,27 @@ TEST(Cli, StationOfFourSimulatedCamerasConverges) {
     const auto result = nlohmann::json::parse(rec.result);
     EXPECT_EQ(result["keyframes"], c["keyframes"]);
     EXPECT_EQ(result["run_id"], c["run_id"]);
+    // records resolve: the calibration again from the stored detections, bit for bit.
+    const std::string run_id = c["run_id"].get<std::string>();
+    const CliRun rr = run("records resolve " + run_id + " --db " + dir + "/records.sqlite --json", true);
+    ASSERT_EQ(rr.status, 0) << rr.out;
+    const auto rj = nlohmann::json::parse(rr.out);
+    EXPECT_TRUE(rj["identical"].get<bool>()) << rr.out;
+    EXPECT_EQ(rj["recomputed"], rj["stored"]);
+    // records export: the re-solved model file equals the one the station wrote.
+    const std::string exp_dir = dir + "/export-" + run_id;
+    const CliRun re = run("records export " + run_id + " --db " + dir + "/records.sqlite --out-dir " + exp_dir);
+    ASSERT_EQ(re.status, 0) << re.out;
+    const std::string id = c["camera"]["id"].get<std::string>();
+    EXPECT_EQ(posecal::read_camera_model(exp_dir + "/" + id + ".yml").params(),
+              posecal::read_camera_model(c["file"].get<std::string>()).params());
+    std::ifstream exported_record(exp_dir + "/" + run_id + ".json");
+    ASSERT_TRUE(exported_record.good());
+    EXPECT_EQ(nlohmann::json::parse(exported_record)["keyframes"].size(), rec.keyframes.size());
   }
+  const CliRun rl = run("records list --db " + dir + "/records.sqlite --json", true);
+  ASSERT_EQ(rl.status, 0) << rl.out;
+  EXPECT_EQ(nlohmann::json::parse(rl.out).size(), 4u);
   // The cameras ran concurrently: the whole station took less than their sum.
   std::printf("station: %.1f s wall, %.1f s summed over the cameras\n", wall_s, sum_camera_s);
   EXPECT_LT(wall_s, sum_camera_s);
@@ -1106,6 +1126,17 @@ TEST(Cli, RecordsKeepTheRunAndNeverCostTheCalibration) {
   ASSERT_TRUE(j["records_note"].is_string()) << r.out;
   EXPECT_NE(j["records_note"].get<std::string>().find("already recorded"), std::string::npos);
   EXPECT_EQ(posecal::RecordStore::open(db)->get_run(run_id).summary.identity.station_id, "line1-st2");
+
+  // The readers: an unknown run is a clear error; show names the run's ids and keyframes.
+  r = run("records show no-such-run --db " + db);
+  EXPECT_EQ(r.status, 2) << r.out;
+  EXPECT_NE(r.out.find("no run no-such-run"), std::string::npos) << r.out;
+  r = run("records show " + run_id.substr(0, 8) + " --db " + db + " --json", true);
+  ASSERT_EQ(r.status, 0) << r.out;
+  EXPECT_EQ(nlohmann::json::parse(r.out)["lens_id"], "M12-6mm");
+  r = run("records list --db " + dir + "/missing-dir/r.sqlite");
+  EXPECT_EQ(r.status, 2) << r.out;
+  EXPECT_NE(r.out.find("missing-dir/r.sqlite"), std::string::npos) << r.out;
 
   r = run("simulate --seed 2 --json --records " + dir + "/no/such/dir/r.sqlite", true);
   ASSERT_EQ(r.status, 0) << r.out;  // converged all the same

@@ -96,6 +96,10 @@ __all__ = [
     "__version__",
     "library_path",
     "write_target",
+    "records_list",
+    "records_show",
+    "records_resolve",
+    "records_export",
 ]
 
 _lib = _native.lib
@@ -154,6 +158,39 @@ def version() -> str:
     """The loaded library's version (posecal_version()), e.g. "0.1.0"; `__version__` is the
     package's."""
     return _lib.posecal_version().decode("utf-8")
+
+
+def records_list(db: PathArg) -> List[Dict[str, Any]]:
+    """The runs of a record store (the session key "records"; a station keeps
+    DIR/records.sqlite), newest first: run_id, station_id, operator_id, lens_id, camera,
+    posecal_version, abi_version, started, finished, state, verdict, expected_error_px,
+    keyframes (posecal.h, posecal_records_list)."""
+    d = _enc(db, "db")
+    runs: List[Dict[str, Any]] = _fetch_json(lambda b, n: _lib.posecal_records_list(d, b, n))
+    return runs
+
+
+def records_show(db: PathArg, run_id: str) -> Dict[str, Any]:
+    """One run (its id or a unique prefix): the list's fields and config, image size,
+    locked_settings, result (None without a calibration) and keyframes."""
+    d, r = _enc(db, "db"), _enc(run_id, "run_id")
+    run: Dict[str, Any] = _fetch_json(lambda b, n: _lib.posecal_records_show(d, r, b, n))
+    return run
+
+
+def records_resolve(db: PathArg, run_id: str) -> Dict[str, Any]:
+    """Re-solves a run from its stored detections: identical (bit for bit with the stored
+    result), recomputed and stored intrinsics."""
+    d, r = _enc(db, "db"), _enc(run_id, "run_id")
+    out: Dict[str, Any] = _fetch_json(lambda b, n: _lib.posecal_records_resolve(d, r, b, n))
+    return out
+
+
+def records_export(db: PathArg, run_id: str, path: PathArg, format: Optional[str] = None) -> None:
+    """Writes a run's re-solved calibration as a model file (format by name, or by the
+    extension)."""
+    _check(_lib.posecal_records_export(_enc(db, "db"), _enc(run_id, "run_id"), _enc(path, "path"),
+                                       _enc(format, "format")))
 
 
 def write_target(path: PathArg, target: Optional[str] = None, dpi: float = 300.0,

@@ -123,6 +123,10 @@ _PROTOTYPES = {
     "posecal_session_save": (_status, [_p, _s]),
     "posecal_session_save_as": (_status, [_p, _s, _s]),
     "posecal_session_set_callback": (_status, [_p, EVENT_FN, _p]),
+    "posecal_records_list": (_status, [_s, _c.c_char_p, _size_p]),
+    "posecal_records_show": (_status, [_s, _s, _c.c_char_p, _size_p]),
+    "posecal_records_resolve": (_status, [_s, _s, _c.c_char_p, _size_p]),
+    "posecal_records_export": (_status, [_s, _s, _s, _s]),
 }
 
 for _name, (_restype, _argtypes) in _PROTOTYPES.items():

@@ -66,6 +66,30 @@ class Calibration(unittest.TestCase):
         self.assertAlmostEqual(ev["eps_gt"], r["eps_gt"], places=5)
         self.assertAlmostEqual(ev["eps_test"], r["eps_test"], places=5)
 
+    def test_records(self):
+        db = os.path.join(self.tmp.name, "records.sqlite")
+        with self.ctx.open("sim://?seed=7", records=db, lens_id="C525-lens",
+                           station_id="py-station") as s:
+            list(s)
+            run_id = s.result["run_id"]
+            self.assertIsNone(s.result["records_note"])
+        runs = posecal.records_list(db)
+        self.assertEqual([r["run_id"] for r in runs], [run_id])
+        self.assertEqual(runs[0]["state"], "converged")
+        run = posecal.records_show(db, run_id[:8])
+        self.assertEqual(run["lens_id"], "C525-lens")
+        self.assertEqual(len(run["keyframes"]), run["result"]["keyframes"])
+        solved = posecal.records_resolve(db, run_id)
+        self.assertTrue(solved["identical"])
+        self.assertEqual(solved["recomputed"], solved["stored"])
+        yml = os.path.join(self.tmp.name, "exported.yml")
+        posecal.records_export(db, run_id, yml)
+        self.assertTrue(os.path.getsize(yml) > 0)
+        with self.assertRaises(posecal.NotFoundError):
+            posecal.records_show(db, "no-such-run")
+        with self.assertRaises(posecal.FileError):
+            posecal.records_list(os.path.join(self.tmp.name, "no", "dir", "r.sqlite"))
+
     def test_fed_frames_give_the_same_calibration(self):
         # A host feeding a simulated camera's frames into an "external" session gets exactly the
         # calibration of the simulated session: same frames, same engine. Formats, arrays and

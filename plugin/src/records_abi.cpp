@@ -1,0 +1,180 @@
+// The C ABI of calibration records (posecal.h, "Records"): list the runs of a store, show one,
+// re-solve one from its stored detections, export its calibration as a model file.
+#include <nlohmann/json.hpp>
+
+#include "abi_common.hpp"
+#include "json_report.hpp"
+#include "posecal.h"
+#include "records/record_store.hpp"
+#include "select/engine.hpp"
+#include "session/journal.hpp"
+#include "session_config.hpp"
+
+using namespace posecal;
+using Json = nlohmann::json;
+using abi::guarded;
+using abi::require;
+
+namespace {
+
+Json parsed_or_text(const std::string& text) {
+  if (text.empty()) return nullptr;
+  Json j = Json::parse(text, nullptr, false);
+  return j.is_discarded() ? Json(text) : j;
+}
+
+Json summary_json(const RunSummary& s) {
+  const RunIdentity& id = s.identity;
+  return {{"run_id", id.run_id},
+          {"station_id", id.station_id},
+          {"operator_id", id.operator_id},
+          {"lens_id", id.lens_id},
+          {"camera",
+           {{"uri", id.camera_uri},
+            {"id", id.camera_id},
+            {"vendor", id.camera_vendor},
+            {"model", id.camera_model},
+            {"serial", id.camera_serial},
+            {"transport", id.camera_device_version}}},
+          {"posecal_version", id.posecal_version},
+          {"abi_version", id.abi_version},
+          {"started", id.started},
+          {"finished", s.finished.empty() ? Json(nullptr) : Json(s.finished)},
+          {"state", s.state},
+          {"verdict", s.verdict.empty() ? Json(nullptr) : Json(s.verdict)},
+          {"expected_error_px", s.expected_error_px ? Json(*s.expected_error_px) : Json(nullptr)},
+          {"keyframes", s.keyframes}};
+}
+
+// The run's calibration recomputed from its stored keyframes, as a journal's resume recomputes
+// it: the engine of the recorded config and image size, every keyframe restored in order.
+struct Resolved {
+  std::unique_ptr<CalibrationEngine> engine;
+  bool identical_to_last_keyframe = false;
+};
+
+Resolved resolve(const RunRecord& r) {
+  const std::string& run = r.summary.identity.run_id;
+  if (r.keyframes.size() < 2 || r.image_width <= 0 || r.image_height <= 0) {
+    throw Error(ErrorCode::kState, "run " + run + " has " + std::to_string(r.keyframes.size()) +
+                                       " keyframes: a calibration needs two");
+  }
+  const Json config = abi::parse_options(r.summary.identity.config.c_str(),
+                                         abi::session_config_keys(), "recorded session config");
+  const SessionOptions options = abi::session_options_from_json(config);
+  std::vector<KeyframeRecord> keyframes;
+  for (const StoredKeyframe& k : r.keyframes) keyframes.push_back(keyframe_from_json(k.record));
+  Resolved out;
+  out.engine = std::make_unique<CalibrationEngine>(cv::Size(r.image_width, r.image_height),
+                                                   options.engine);
+  out.identical_to_last_keyframe = out.engine->restore(keyframes);
+  if (!out.engine->result()) {
+    throw Error(ErrorCode::kDegenerate, "run " + run + ": its keyframes give no calibration");
+  }
+  return out;
+}
+
+RunRecord get_run(const char* location, const char* run_id) {
+  require(location, "location");
+  require(run_id, "run_id");
+  return RecordStore::open(location)->get_run(run_id);
+}
+
+}  // namespace
+
+extern "C" {
+
+POSECAL_API posecal_status posecal_records_list(const char* location, char* buf,
+                                                size_t* size) noexcept {
+  return guarded(__func__, [&] {
+    require(location, "location");
+    require(size, "size");
+    Json runs = Json::array();
+    for (const RunSummary& s : RecordStore::open(location)->list_runs())
+      runs.push_back(summary_json(s));
+    return abi::copy_out(abi::to_text(runs), buf, size);
+  });
+}
+
+POSECAL_API posecal_status posecal_records_show(const char* location, const char* run_id,
+                                                char* buf, size_t* size) noexcept {
+  return guarded(__func__, [&] {
+    require(size, "size");
+    const RunRecord r = get_run(location, run_id);
+    Json j = summary_json(r.summary);
+    j["config"] = parsed_or_text(r.summary.identity.config);
+    j["image_width"] = r.image_width;
+    j["image_height"] = r.image_height;
+    j["locked_settings"] = r.locked_settings;
+    j["result"] = parsed_or_text(r.result);
+    Json kfs = Json::array();
+    for (const StoredKeyframe& k : r.keyframes) {
+      const KeyframeRecord rec = keyframe_from_json(k.record);
+      kfs.push_back({{"index", k.index},
+                     {"time", k.time},
+                     {"corners", rec.observation.ids.size()},
+                     {"state_before", engine_state_name(rec.state_before)},
+                     {"state_after", engine_state_name(rec.state_after)},
+                     {"image_png_bytes", k.image_png.size()}});
+    }
+    j["keyframes"] = kfs;
+    return abi::copy_out(abi::to_text(j), buf, size);
+  });
+}
+
+POSECAL_API posecal_status posecal_records_resolve(const char* location, const char* run_id,
+                                                   char* buf, size_t* size) noexcept {
+  return guarded(__func__, [&] {
+    require(size, "size");
+    const RunRecord r = get_run(location, run_id);
+    const Resolved solved = resolve(r);
+    const CalibrationResult& result = *solved.engine->result();
+    const std::vector<std::string>& names = result.model.param_names();
+    Json recomputed = Json::object(), stored = Json::object();
+    const Json stored_result = parsed_or_text(r.result);
+    bool identical_to_result = stored_result.is_object();
+    for (int i = 0; i < result.model.num_params(); ++i) {
+      const double v = result.model.params()[i];
+      recomputed[names[i]] = v;
+      if (stored_result.is_object() && stored_result.contains(names[i]) &&
+          stored_result[names[i]].is_number()) {
+        const double s = stored_result[names[i]].get<double>();
+        stored[names[i]] = s;
+        identical_to_result = identical_to_result && s == v;  // bit for bit
+      } else {
+        identical_to_result = false;
+      }
+    }
+    const Json j = {
+        {"run_id", r.summary.identity.run_id},
+        {"keyframes", r.keyframes.size()},
+        {"recorded_by", r.summary.identity.posecal_version},
+        {"resolved_by", POSECAL_VERSION_STRING},
+        {"identical", solved.identical_to_last_keyframe && identical_to_result},
+        {"identical_to_last_keyframe", solved.identical_to_last_keyframe},
+        {"identical_to_result", identical_to_result},
+        {"recomputed", recomputed},
+        {"stored", stored_result.is_object() ? stored : Json(nullptr)}};
+    return abi::copy_out(abi::to_text(j), buf, size);
+  });
+}
+
+POSECAL_API posecal_status posecal_records_export(const char* location, const char* run_id,
+                                                  const char* path,
+                                                  const char* format) noexcept {
+  return guarded(__func__, [&] {
+    require(path, "path");
+    const RunRecord r = get_run(location, run_id);
+    const Resolved solved = resolve(r);
+    CalibrationFileExtras extras;
+    extras.strings = {{"camera_uri", r.summary.identity.camera_uri},
+                      {"camera_id", r.summary.identity.camera_id},
+                      {"target", solved.engine->options().board.to_string()}};
+    extras.converged = r.summary.state == "converged";
+    extras.interrupted = r.summary.state == "interrupted";
+    abi::save_calibration(path, *solved.engine->result(), format, extras);
+    return POSECAL_OK;
+  });
+}
+
+}  // extern "C"
