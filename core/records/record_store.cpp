@@ -1,8 +1,10 @@
 #include "records/record_store.hpp"
 
 #include <sqlite3.h>
+#include <unistd.h>
 
 #include <cstdio>
+#include <cstring>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
 #include <random>
@@ -32,6 +34,9 @@ CREATE TABLE runs (
   locked_settings TEXT NOT NULL DEFAULT '{}',
   started TEXT NOT NULL, finished TEXT NOT NULL DEFAULT '',
   state TEXT NOT NULL DEFAULT 'running',
+  host TEXT NOT NULL DEFAULT '', pid INTEGER NOT NULL DEFAULT 0,
+  pid_start TEXT NOT NULL DEFAULT '',
+  note TEXT NOT NULL DEFAULT '',
   verdict TEXT NOT NULL DEFAULT '',
   expected_error_px REAL,
   result TEXT NOT NULL DEFAULT ''
@@ -46,6 +51,43 @@ CREATE TABLE keyframes (
 );
 CREATE INDEX runs_by_camera ON runs(camera_model, lens_id, state);
 )sql";
+
+// This process as a record knows it: the host, the pid and the pid's start time (a pid alone
+// is reused). A run left "running" by a process that no longer exists was killed.
+struct Writer {
+  std::string host;
+  long long pid = 0;
+  std::string start;
+};
+
+// The start time of process `pid` (field 22 of /proc/PID/stat, clock ticks since boot); "" if
+// there is no such process.
+std::string process_start(long long pid) {
+  std::FILE* f = std::fopen(("/proc/" + std::to_string(pid) + "/stat").c_str(), "re");
+  if (!f) return "";
+  char buf[1024];
+  const size_t n = std::fread(buf, 1, sizeof buf - 1, f);
+  std::fclose(f);
+  buf[n] = '\0';
+  // The command name (field 2) is in parentheses and may hold spaces: count from its end.
+  const char* p = std::strrchr(buf, ')');
+  if (!p) return "";
+  int field = 2;
+  for (; *p && field < 22; ++p)
+    if (*p == ' ') ++field;
+  std::string start;
+  for (; *p && *p != ' '; ++p) start += *p;
+  return start;
+}
+
+Writer this_writer() {
+  Writer w;
+  char host[256] = {};
+  if (::gethostname(host, sizeof host - 1) == 0) w.host = host;
+  w.pid = static_cast<long long>(::getpid());
+  w.start = process_start(w.pid);
+  return w;
+}
 
 }  // namespace
 
@@ -195,7 +237,7 @@ const char* kSummaryColumns =
     "r.run_id, r.station_id, r.operator_id, r.lens_id, r.camera_uri, r.camera_id, "
     "r.camera_vendor, r.camera_model, r.camera_serial, r.camera_device_version, "
     "r.posecal_version, r.abi_version, r.config, r.started, r.state, r.finished, r.verdict, "
-    "r.expected_error_px, (SELECT count(*) FROM keyframes k WHERE k.run_id = r.run_id)";
+    "r.expected_error_px, (SELECT count(*) FROM keyframes k WHERE k.run_id = r.run_id), r.note";
 
 RunSummary summary_of(const Statement& s) {
   RunSummary r;
@@ -209,6 +251,7 @@ RunSummary summary_of(const Statement& s) {
   }
   r.expected_error_px = s.column_real(i++);
   r.keyframes = static_cast<int>(s.column_int(i++));
+  r.note = s.column_text(i++);
   return r;
 }
 
@@ -260,7 +303,30 @@ std::unique_ptr<RecordStore> RecordStore::open(const std::string& location) {
 }
 
 void RecordStore::begin_run(const RunIdentity& r) {
+  const Writer me = this_writer();
   Transaction t(db_->handle, location_);
+  {
+    // Runs of this host left "running" by a process that is gone were killed (kill -9, a power
+    // cut): they are marked so, with what they kept.
+    Statement running(db_->handle, location_,
+                      "SELECT run_id, pid, pid_start FROM runs WHERE state = 'running' AND host = ?");
+    running.text(1, me.host);
+    std::vector<std::pair<std::string, long long>> dead;
+    while (running.step()) {
+      const long long pid = running.column_int(1);
+      if (pid > 0 && process_start(pid) != running.column_text(2))
+        dead.emplace_back(running.column_text(0), pid);
+    }
+    for (const auto& [id, pid] : dead) {
+      Statement mark(db_->handle, location_,
+                     "UPDATE runs SET state = 'killed', note = ?, "
+                     "finished = strftime('%Y-%m-%dT%H:%M:%SZ', 'now') WHERE run_id = ?");
+      mark.text(1, "its process (pid " + std::to_string(pid) +
+                       ") ended without finishing the run; found when run " + r.run_id + " began")
+          .text(2, id)
+          .step();
+    }
+  }
   Statement exists(db_->handle, location_, "SELECT count(*) FROM runs WHERE run_id = ?");
   exists.text(1, r.run_id).step();
   if (exists.column_int(0) != 0) {
@@ -270,8 +336,8 @@ void RecordStore::begin_run(const RunIdentity& r) {
   Statement s(db_->handle, location_,
               "INSERT INTO runs (run_id, station_id, operator_id, lens_id, camera_uri, camera_id, "
               "camera_vendor, camera_model, camera_serial, camera_device_version, "
-              "posecal_version, abi_version, config, started) "
-              "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)");
+              "posecal_version, abi_version, config, started, host, pid, pid_start) "
+              "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)");
   int i = 1;
   for (const std::string* f : {&r.run_id, &r.station_id, &r.operator_id, &r.lens_id,
                                &r.camera_uri, &r.camera_id, &r.camera_vendor, &r.camera_model,
@@ -279,6 +345,7 @@ void RecordStore::begin_run(const RunIdentity& r) {
                                &r.abi_version, &r.config, &r.started}) {
     s.text(i++, *f);
   }
+  s.text(i, me.host).integer(i + 1, me.pid).text(i + 2, me.start);
   s.step();
   t.commit();
 }
@@ -353,13 +420,13 @@ RunRecord RecordStore::get_run(const std::string& run_id) const {
   }
   RunRecord r;
   r.summary = summary_of(s);
-  r.image_width = static_cast<int>(s.column_int(19));
-  r.image_height = static_cast<int>(s.column_int(20));
-  const Json locked = Json::parse(s.column_text(21), nullptr, false);
+  r.image_width = static_cast<int>(s.column_int(20));
+  r.image_height = static_cast<int>(s.column_int(21));
+  const Json locked = Json::parse(s.column_text(22), nullptr, false);
   if (locked.is_object()) {
     for (const auto& [k, v] : locked.items()) r.locked_settings[k] = v.is_string() ? v.get<std::string>() : v.dump();
   }
-  r.result = s.column_text(22);
+  r.result = s.column_text(23);
   if (s.step()) {
     throw Error(ErrorCode::kInvalidArgument,
                 "records: run id " + run_id + " is ambiguous in '" + location_ + "'");

@@ -38,11 +38,12 @@ struct RunIdentity {
 
 struct RunSummary {
   RunIdentity identity;
-  std::string state;     // running, converged, failed, interrupted
+  std::string state;     // running, converged, failed, interrupted, closed, killed
   std::string finished;  // "" while running
   std::string verdict;   // "", pass or fail
   std::optional<double> expected_error_px;
   int keyframes = 0;
+  std::string note;  // killed: which process ended without finishing it, and when that was found
 };
 
 struct StoredKeyframe {
@@ -78,7 +79,9 @@ class RecordStore {
 
   // Each is one transaction; each throws Error(kIo) naming the store and the cause
   // (e.g. "database or disk is full"). begin_run refuses a run id that exists
-  // (Error(kInvalidArgument)): two runs never share a record.
+  // (Error(kInvalidArgument)): two runs never share a record. A run records its writer (host,
+  // pid and the pid's start time); begin_run marks the runs of this host still "running"
+  // whose writer is gone as "killed", with a note.
   void begin_run(const RunIdentity& run);
   void set_engine(const std::string& run_id, cv::Size image_size,
                   const std::map<std::string, std::string>& locked_settings);

@@ -168,8 +168,10 @@ POSECAL_API posecal_status posecal_write_target_ex(const char* target_spec, cons
  * posecal_records_list: a JSON array of the runs, newest first, each {"run_id", "station_id",
  * "operator_id", "lens_id", "camera" {uri, id, vendor, model, serial, transport},
  * "posecal_version", "abi_version", "started", "finished" (null while running or after a
- * kill), "state" (running, converged, failed, interrupted, closed), "verdict" (null, "pass",
- * "fail"), "expected_error_px" (null or a number), "keyframes"}. */
+ * kill), "state" (running, converged, failed, interrupted, closed; killed: its process ended
+ * without finishing it, found when a later run on the same host began), "verdict" (null,
+ * "pass", "fail"), "expected_error_px" (null or a number), "keyframes", "note" (null, or for a
+ * killed run which process ended)}. */
 POSECAL_API posecal_status posecal_records_list(const char* location, char* buf,
                                                 size_t* size) POSECAL_NOEXCEPT;
 /* One run: the list's fields and "config" (the session config), "image_width",

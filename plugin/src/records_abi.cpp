@@ -43,7 +43,8 @@ Json summary_json(const RunSummary& s) {
           {"state", s.state},
           {"verdict", s.verdict.empty() ? Json(nullptr) : Json(s.verdict)},
           {"expected_error_px", s.expected_error_px ? Json(*s.expected_error_px) : Json(nullptr)},
-          {"keyframes", s.keyframes}};
+          {"keyframes", s.keyframes},
+          {"note", s.note.empty() ? Json(nullptr) : Json(s.note)}};
 }
 
 // The run's calibration recomputed from its stored keyframes, as a journal's resume recomputes

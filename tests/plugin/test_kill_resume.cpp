@@ -13,6 +13,7 @@
 #include <unistd.h>
 
 #include <chrono>
+#include <cstdio>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
@@ -25,6 +26,7 @@
 #include <string>
 #include <vector>
 
+#include "records/record_store.hpp"
 #include "session/journal.hpp"
 
 namespace fs = std::filesystem;
@@ -232,6 +234,7 @@ TEST(KillResume, StationKilledAnywhereResumesEveryCamera) {
   fs::create_directories(dir);
   const fs::path model = write_vga_model(dir);
   std::mt19937 rng(17);
+  int finished_runs = 0, killed_runs = 0;
   for (int round = 0; round < rounds(); ++round) {
     const std::string where = "round " + std::to_string(round);
     const fs::path st = dir / ("r" + std::to_string(round));
@@ -268,6 +271,23 @@ TEST(KillResume, StationKilledAnywhereResumesEveryCamera) {
       EXPECT_FALSE(Json::parse(in, nullptr, false).is_discarded())
           << where << ": summary.json is cut";
     }
+    // The records the killed station left (issue 15): each reads; the finished cameras' runs are
+    // complete, the others "running" until the next run marks them.
+    std::map<std::string, int> finished_before;  // run id -> keyframes
+    std::vector<std::string> running_before;
+    const std::string db = (st / "records.sqlite").string();
+    if (fs::exists(db)) {
+      std::vector<posecal::RunSummary> runs;
+      ASSERT_NO_THROW(runs = posecal::RecordStore::open(db)->list_runs()) << where;
+      for (const auto& r : runs) {
+        if (r.state == "running") {
+          running_before.push_back(r.identity.run_id);
+        } else {
+          EXPECT_EQ(r.state, "converged") << where;
+          finished_before[r.identity.run_id] = r.keyframes;
+        }
+      }
+    }
     Child again(args, dir / "stderr.txt");
     const int code = again.finish(300);
     EXPECT_EQ(code, 0) << where;
@@ -285,5 +305,27 @@ TEST(KillResume, StationKilledAnywhereResumesEveryCamera) {
       }
       expect_absent_or_whole(cam.value("file", ""), where);
     }
+    // After the second run: its four runs converged; the killed station's finished runs are
+    // intact and its unfinished ones marked "killed"; none is left "running".
+    auto store = posecal::RecordStore::open(db);
+    for (const auto& cam : sum["cameras"]) {
+      ASSERT_TRUE(cam["run_id"].is_string()) << where << ": " << cam.dump();
+      EXPECT_EQ(store->get_run(cam["run_id"].get<std::string>()).summary.state, "converged")
+          << where;
+    }
+    for (const auto& [id, keyframes] : finished_before) {
+      const posecal::RunRecord r = store->get_run(id);
+      EXPECT_EQ(r.summary.state, "converged") << where;
+      EXPECT_EQ(static_cast<int>(r.keyframes.size()), keyframes) << where;
+    }
+    for (const std::string& id : running_before) {
+      EXPECT_EQ(store->get_run(id).summary.state, "killed") << where << ": run " << id;
+    }
+    for (const auto& r : store->list_runs()) EXPECT_NE(r.state, "running") << where;
+    finished_runs += static_cast<int>(finished_before.size());
+    killed_runs += static_cast<int>(running_before.size());
   }
+  std::printf("station records: %d runs finished before a kill kept intact, %d killed runs "
+              "marked, over %d rounds\n",
+              finished_runs, killed_runs, rounds());
 }

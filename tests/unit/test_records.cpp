@@ -4,6 +4,8 @@
 // refused naming the store and the cause.
 #include <gtest/gtest.h>
 #include <sqlite3.h>
+#include <sys/wait.h>
+#include <unistd.h>
 
 #include <filesystem>
 #include <fstream>
@@ -135,6 +137,38 @@ TEST(Records, ARunCutShortStaysReadableAsRunning) {
   EXPECT_EQ(r.summary.state, "running");
   EXPECT_TRUE(r.summary.finished.empty());
   EXPECT_EQ(r.keyframes.size(), 1u);
+}
+
+// A run whose process died (kill -9) stays "running" until the next run on the host begins,
+// which marks it "killed" with a note; what it committed is kept. A run of a live process is
+// left alone.
+TEST(Records, ARunOfADeadProcessIsMarkedKilledByTheNextRun) {
+  const std::string db = (fresh("killed") / "records.sqlite").string();
+  const std::string dead_run = new_run_id(), live_run = new_run_id(), next_run = new_run_id();
+  RecordStore::open(db);  // the schema, before the fork
+  const pid_t child = ::fork();
+  ASSERT_GE(child, 0);
+  if (child == 0) {
+    try {
+      auto store = RecordStore::open(db);
+      store->begin_run(identity(dead_run));
+      store->add_keyframe(dead_run, 1, sample(0), cv::Mat());
+    } catch (...) {
+      ::_exit(1);
+    }
+    ::_exit(0);  // no finish_run: as if killed
+  }
+  int status = 0;
+  ASSERT_EQ(::waitpid(child, &status, 0), child);
+  ASSERT_TRUE(WIFEXITED(status) && WEXITSTATUS(status) == 0);
+  auto store = RecordStore::open(db);
+  store->begin_run(identity(live_run));  // this process: alive
+  EXPECT_EQ(store->get_run(dead_run).summary.state, "killed");
+  EXPECT_NE(store->get_run(dead_run).summary.note.find("pid " + std::to_string(child)),
+            std::string::npos);
+  EXPECT_EQ(store->get_run(dead_run).keyframes.size(), 1u);
+  store->begin_run(identity(next_run));
+  EXPECT_EQ(store->get_run(live_run).summary.state, "running");  // its process is this one
 }
 
 TEST(Records, TwoWritersOnOneFileLoseNothing) {
