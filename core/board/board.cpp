@@ -444,6 +444,7 @@ using Contours = std::vector<std::vector<cv::Point>>;
 // frames 72-140 up to sigma 10 (a textured background included). Above the cap of them the frame
 // is searched on a copy shrunk twice as much (corners refined at full resolution).
 constexpr int kBusyMinPoints = 16;
+constexpr int kQuarterSearchMinSide = 120;  // a busy chessboard frame's first, coarse search
 constexpr int kCharucoBusyFactor = 2;  // ChArUco's limit: twice the cap (see detect_charuco)
 constexpr int kHalfSizeWindow = 7;        // OpenCV's middle marker-search window (13) at half size
 constexpr double kThresholdConstant = 7;  // OpenCV's adaptiveThreshConstant
@@ -560,12 +561,24 @@ std::vector<cv::Point2f> Board::detect_chessboard(const cv::Mat& gray,
   cv::Mat search = k > 1 ? shrink_for_search(gray, k) : gray;
   const int cap = quad_cap(options, (spec_.cols + 1) * (spec_.rows + 1));
   // A busy frame is searched on a copy shrunk twice as much. (A search image under 32 px a side
-  // has no room for a board at half size; it is cheap as it is.)
+  // has no room for a board at half size; it is cheap as it is.) Before that, on one shrunk four
+  // times as much, where the texture of clutter is averaged away and a board of large squares
+  // in front of it is found in a few milliseconds (OpenCV's search among the clutter's quads at
+  // half size took 110-180 ms; docs/performance.md, "Busy frames"); only if no board is found
+  // there (a board of small squares) does the half-size search run.
+  bool found = false;
   if (cap > 0 && std::min(search.cols, search.rows) >= 32 && busy(half_size_contours(search), cap)) {
-    k *= 2;
-    search = shrink_for_search(gray, k);
+    const int quarter = 4 * k;
+    if (std::min(gray.cols / quarter, gray.rows / quarter) >= kQuarterSearchMinSide &&
+        cv::findChessboardCorners(shrink_for_search(gray, quarter), pattern, pts, flags)) {
+      k = quarter;
+      found = true;
+    } else {
+      k *= 2;
+      search = shrink_for_search(gray, k);
+    }
   }
-  if (!cv::findChessboardCorners(search, pattern, pts, flags)) return {};
+  if (!found && !cv::findChessboardCorners(search, pattern, pts, flags)) return {};
   if (k > 1) {
     for (auto& p : pts) p = to_full_resolution(p, k);
   }
