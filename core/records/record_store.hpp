@@ -22,6 +22,7 @@
 #include <string>
 #include <vector>
 
+#include "common/run_id.hpp"  // new_run_id
 #include "select/engine.hpp"
 
 namespace posecal {
@@ -60,9 +61,6 @@ struct RunRecord {
   std::string result;  // the result JSON text, "" while running
   std::vector<StoredKeyframe> keyframes;
 };
-
-// A random (version 4) UUID, lower-case hex with dashes.
-std::string new_run_id();
 
 class RecordStore {
  public:

@@ -21,7 +21,9 @@ std::mutex g_out_mutex;
 // The clock every event's "mono_ms" counts from: the first use, early in main.
 const std::chrono::steady_clock::time_point g_start = std::chrono::steady_clock::now();
 
-// UTC wall time with milliseconds, ISO 8601: "2026-12-03T11:55:01.123Z".
+
+}  // namespace
+
 std::string utc_iso8601_ms() {
   const auto now = std::chrono::system_clock::now();
   const auto ms = std::chrono::duration_cast<std::chrono::milliseconds>(now.time_since_epoch());
@@ -34,8 +36,6 @@ std::string utc_iso8601_ms() {
                 static_cast<int>(ms.count() % 1000));
   return buf;
 }
-
-}  // namespace
 
 void stamp_event(Json* j) {
   if (!j->is_object() || !j->contains("event")) return;

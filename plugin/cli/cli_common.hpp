@@ -72,6 +72,8 @@ class Session {
 // share stdout/stderr across threads: one line at a time. A line with an "event" key gets its
 // timestamps (stamp_event).
 void write_line(FILE* out, const Json& j);
+// UTC wall time with milliseconds, ISO 8601: "2026-12-03T11:55:01.123Z".
+std::string utc_iso8601_ms();
 // Adds "time" (UTC, ISO 8601 with milliseconds) and "mono_ms" (a monotonic clock's
 // milliseconds since the program started) to an event object; other JSON is left alone.
 void stamp_event(Json* j);

@@ -3,12 +3,14 @@
 #include <algorithm>
 #include <cctype>
 #include <filesystem>
+#include <fstream>
 #include <memory>
 #include <mutex>
 #include <set>
 #include <thread>
 
 #include "commands.hpp"
+#include "common/run_id.hpp"
 #include "interrupt.hpp"
 #include "session_flags.hpp"
 
@@ -18,7 +20,7 @@ namespace {
 
 struct StationOptions {
   std::string cameras, out_dir, format = "yml";
-  bool json = false, events = false;
+  bool json = false, events = false, force = false;
   int timeout_ms = 2000;
   double max_seconds = 1800;
   std::unique_ptr<SessionFlags> session;
@@ -296,6 +298,43 @@ Json run_cameras(const StationOptions& o, const std::vector<std::string>& uris, 
           {"wall_ms", ms_since(t0)}};
 }
 
+// The summary of the run DIR holds, if it is one (absent, unreadable or not a summary: null).
+Json previous_summary(const std::string& path) {
+  std::error_code ec;
+  if (!std::filesystem::is_regular_file(path, ec)) return nullptr;  // (a directory there: the
+  try {                                                              // output check says so)
+    std::ifstream in(path);
+    const Json j = Json::parse(in, nullptr, false);
+    return j.is_object() && j.contains("cameras") && j["cameras"].is_array() ? j : Json(nullptr);
+  } catch (const std::exception&) {
+    return nullptr;  // unreadable: not a run to protect
+  }
+}
+
+// A station run's directory holds one run. A finished one (its summary, nothing interrupted) is
+// not calibrated over without --force; an interrupted or killed one is resumed (the journals).
+// --force removes the finished run's result files and journals first, so that no file of it
+// is left beside the new run's (the records database keeps every run).
+void claim_directory(const StationOptions& o, const std::string& sum_path) {
+  const Json previous = previous_summary(sum_path);
+  if (previous.is_null() || previous.value("interrupted", 0) > 0) return;
+  if (!o.force) {
+    throw UsageError{"'" + o.out_dir + "' holds a finished station run (" +
+                     previous.value("station_run_id", std::string("summary.json")) +
+                     ", finished " + previous.value("finished", std::string("earlier")) +
+                     "): --force calibrates again into it (its result files and journals are "
+                     "replaced; the records are kept), or choose another --out-dir"};
+  }
+  std::error_code ec;
+  const auto dir = std::filesystem::weakly_canonical(o.out_dir, ec);
+  for (const Json& cam : previous["cameras"]) {
+    if (!cam.contains("file") || !cam["file"].is_string()) continue;
+    const auto file = std::filesystem::weakly_canonical(cam["file"].get<std::string>(), ec);
+    if (!ec && file.parent_path() == dir) std::filesystem::remove(file, ec);  // only its own
+  }
+  std::filesystem::remove_all(o.out_dir + "/journal", ec);
+}
+
 int run_station(const StationOptions& o) {
   const std::vector<std::string> uris = split_list(o.cameras);
   if (uris.empty()) throw UsageError{"--cameras needs at least one URI"};
@@ -311,11 +350,23 @@ int run_station(const StationOptions& o) {
   if (o.session->config().contains("run_id")) {
     throw UsageError{"station gives each camera a run id of its own; --run-id is for one camera"};
   }
-  std::filesystem::create_directories(o.out_dir + "/journal", ec);
   const std::string sum_path = o.out_dir + "/summary.json";
+  claim_directory(o, sum_path);
+  std::filesystem::create_directories(o.out_dir + "/journal", ec);
   check_output_file(sum_path, {".json"});  // before any camera is calibrated
   int exit = kOk;
-  const Json sum = run_cameras(o, uris, &exit);
+  const std::string started = utc_iso8601_ms();
+  Json sum = run_cameras(o, uris, &exit);
+  // The run's own id and times; the records of its cameras carry their own run ids.
+  sum["station_run_id"] = new_run_id();
+  sum["started"] = started;
+  sum["finished"] = utc_iso8601_ms();
+  sum["posecal_version"] = posecal_version();
+  sum["station_id"] = o.session->config().value("station_id", Json());
+  Json interrupted_cameras = Json::array();
+  for (const Json& cam : sum["cameras"])
+    if (cam.value("interrupted", false)) interrupted_cameras.push_back(cam.value("uri", ""));
+  sum["interrupted_cameras"] = interrupted_cameras;
   try {
     write_text_file(sum_path, json_text(sum, 2) + "\n");
   } catch (const Failure& f) {
@@ -338,7 +389,9 @@ Command add_station(CLI::App* app) {
   CLI::App* cmd =
       app->add_subcommand("station", "calibrate several cameras concurrently (one thread each)");
   cmd->footer("Writes DIR/<camera id>.<format> per camera and DIR/summary.json; keeps each\n"
-              "camera's journal in DIR/journal/ (the same command again resumes each camera).\n" +
+              "camera's journal in DIR/journal/ (the same command again resumes an interrupted\n"
+              "or killed run; a finished one is calibrated over only with --force) and every\n"
+              "camera's record in DIR/records.sqlite (--records for another store).\n" +
               target_spec_help());
   cmd->add_option("--cameras", o->cameras, "the cameras")
       ->type_name("URI,URI,...")
@@ -361,6 +414,9 @@ Command add_station(CLI::App* app) {
                   "give up on a camera after this long (default: 1800)")
       ->check(CLI::NonNegativeNumber);
   add_json_flag(cmd, &o->json, "print the summary as one JSON object");
+  cmd->add_flag("--force", o->force,
+                "calibrate again into a directory that holds a finished run (its result files "
+                "and journals are replaced; the records are kept)");
   cmd->add_flag("--events", o->events,
                 "print every session's events as JSON lines on stderr (with \"camera\")");
   o->session = std::make_unique<SessionFlags>(cmd);

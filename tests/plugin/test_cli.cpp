@@ -1145,3 +1145,33 @@ TEST(Cli, RecordsKeepTheRunAndNeverCostTheCalibration) {
   EXPECT_NE(j["records_note"].get<std::string>().find("no/such/dir/r.sqlite"), std::string::npos);
   EXPECT_TRUE(j["converged"].get<bool>());
 }
+
+// A station run's directory (issue 15): the summary names the run (its id, times, version); a
+// finished run is not calibrated over without --force; with it, the old run's files go (no stale
+// file beside the new summary) and the records keep both runs.
+TEST(Cli, AStationRunOwnsItsDirectory) {
+  const std::string dir = temp_dir("posecal_station_dir");
+  CliRun r = run("station --cameras 'sim://?seed=1,sim://?seed=2' --out-dir " + dir + " --json", true);
+  ASSERT_EQ(r.status, 0) << r.out;
+  const auto first = nlohmann::json::parse(r.out);
+  ASSERT_TRUE(first["station_run_id"].is_string()) << r.out;
+  EXPECT_TRUE(first["started"].is_string());
+  EXPECT_TRUE(first["finished"].is_string());
+  EXPECT_TRUE(first["interrupted_cameras"].empty());
+  ASSERT_TRUE(fs::exists(dir + "/sim-2.yml"));
+
+  r = run("station --cameras 'sim://?seed=1' --out-dir " + dir);
+  EXPECT_EQ(r.status, 1) << r.out;
+  EXPECT_NE(r.out.find("--force"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find(first["station_run_id"].get<std::string>()), std::string::npos) << r.out;
+  EXPECT_TRUE(fs::exists(dir + "/sim-2.yml"));  // nothing was touched
+
+  r = run("station --cameras 'sim://?seed=1' --out-dir " + dir + " --json --force", true);
+  ASSERT_EQ(r.status, 0) << r.out;
+  const auto second = nlohmann::json::parse(r.out);
+  EXPECT_NE(second["station_run_id"], first["station_run_id"]);
+  EXPECT_EQ(second["cameras"][0]["resumed_keyframes"], 0);  // afresh: the journals went
+  EXPECT_TRUE(fs::exists(dir + "/sim-1.yml"));
+  EXPECT_FALSE(fs::exists(dir + "/sim-2.yml")) << "the old run's file is left beside the new";
+  EXPECT_EQ(posecal::RecordStore::open(dir + "/records.sqlite")->list_runs().size(), 3u);
+}
