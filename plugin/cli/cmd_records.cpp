@@ -1,5 +1,5 @@
-// posecal records list|show|resolve|export: the calibration records a session or station kept
-// with --records (posecal.h, "Records").
+// posecal records list|show|resolve|export|import: the calibration records a session or station
+// kept with --records (posecal.h, "Records"), and journals recorded afterwards.
 #include <filesystem>
 #include <memory>
 
@@ -10,9 +10,10 @@ namespace posecal::cli {
 namespace {
 
 struct RecordsOptions {
-  std::string db, run_id, out_dir, format;
+  std::string db, run_id, out_dir, format, journal, station_id, operator_id, lens_id;
   bool json = false;
-  CLI::App *list = nullptr, *show = nullptr, *resolve = nullptr, *exporter = nullptr;
+  CLI::App *list = nullptr, *show = nullptr, *resolve = nullptr, *exporter = nullptr,
+           *importer = nullptr;
 };
 
 std::string text_or(const Json& j, const char* key, const char* none = "-") {
@@ -121,6 +122,28 @@ int run_export(const RecordsOptions& o) {
   return kOk;
 }
 
+int run_import(const RecordsOptions& o) {
+  Json options = Json::object();
+  if (!o.run_id.empty()) options["run_id"] = o.run_id;
+  if (!o.station_id.empty()) options["station_id"] = o.station_id;
+  if (!o.operator_id.empty()) options["operator_id"] = o.operator_id;
+  if (!o.lens_id.empty()) options["lens_id"] = o.lens_id;
+  const std::string text = options.dump();
+  const Json r = Json::parse(fetch_json([&](char* b, size_t* s) {
+    return posecal_records_import(o.db.c_str(), o.journal.c_str(), text.c_str(), b, s);
+  }));
+  if (o.json) {
+    std::printf("%s\n", json_text(r).c_str());
+  } else {
+    std::printf("recorded %s as run %s (%d keyframes, %s) in %s\n", o.journal.c_str(),
+                r["run_id"].get<std::string>().c_str(), r["keyframes"].get<int>(),
+                r["state"].get<std::string>().c_str(), o.db.c_str());
+    if (r["journal_note"].is_string())
+      std::printf("  journal: %s\n", r["journal_note"].get<std::string>().c_str());
+  }
+  return kOk;
+}
+
 }  // namespace
 
 Command add_records(CLI::App* app) {
@@ -160,7 +183,19 @@ Command add_records(CLI::App* app) {
       ->required()
       ->check(non_empty());
   add_format_option(o->exporter, &o->format);
+  o->importer = cmd->add_subcommand(
+      "import", "record a session's journal as a run (a run whose store was away when it ran)");
+  o->importer->add_option("journal", o->journal, "the journal (--journal, or a station's DIR/journal/)")
+      ->required()
+      ->check(non_empty());
+  db(o->importer);
+  o->importer->add_option("--run-id", o->run_id, "the run id (default: a new UUID)");
+  o->importer->add_option("--station-id", o->station_id, "recorded with the run");
+  o->importer->add_option("--operator-id", o->operator_id, "recorded with the run");
+  o->importer->add_option("--lens-id", o->lens_id, "recorded with the run");
+  add_json_flag(o->importer, &o->json, "print the new run as one JSON object");
   return [o] {
+    if (o->importer->parsed()) return run_import(*o);
     if (o->list->parsed()) return run_list(*o);
     if (o->show->parsed()) return run_show(*o);
     if (o->resolve->parsed()) return run_resolve(*o);

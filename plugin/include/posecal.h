@@ -196,6 +196,19 @@ POSECAL_API posecal_status posecal_records_export(const char* location, const ch
                                                   const char* path,
                                                   const char* format) POSECAL_NOEXCEPT;
 
+/* Records a session's journal (session key "journal") as a run: the spool for a session whose
+ * record store was away (its "records_note" said why), or one recorded before records existed.
+ * The camera, config and start time come from the journal, the keyframes (without images) and
+ * the locked settings too; the result is the calibration recomputed from the keyframes (as a
+ * resume recomputes it; no eps figures, no verdict); the state is the journal's end state, or
+ * "interrupted" if it has none. options_json: NULL or {"run_id" (default a new UUID),
+ * "station_id", "operator_id", "lens_id"}. Returns {"run_id", "keyframes", "state",
+ * "journal_note" (what was dropped from a damaged journal, or null)}. POSECAL_E_STATE for a
+ * journal without a frame; a run id already in the store is POSECAL_E_INVALID_ARGUMENT. */
+POSECAL_API posecal_status posecal_records_import(const char* location, const char* journal_path,
+                                                  const char* options_json, char* buf,
+                                                  size_t* size) POSECAL_NOEXCEPT;
+
 /* Callback of session events (posecal_session_set_callback) and of offline progress
  * (posecal_calibrate_images_ex): a kind and a JSON payload, valid only during the call. */
 typedef void (*posecal_event_fn)(void* user_data, const char* kind, const char* payload_json);

@@ -3,6 +3,7 @@
 #include <nlohmann/json.hpp>
 
 #include "abi_common.hpp"
+#include "common/clock.hpp"
 #include "json_report.hpp"
 #include "posecal.h"
 #include "records/record_store.hpp"
@@ -175,6 +176,79 @@ POSECAL_API posecal_status posecal_records_export(const char* location, const ch
     extras.interrupted = r.summary.state == "interrupted";
     abi::save_calibration(path, *solved.engine->result(), format, extras);
     return POSECAL_OK;
+  });
+}
+
+POSECAL_API posecal_status posecal_records_import(const char* location, const char* journal_path,
+                                                  const char* options_json, char* buf,
+                                                  size_t* size) noexcept {
+  return guarded(__func__, [&] {
+    require(location, "location");
+    require(journal_path, "journal_path");
+    require(size, "size");
+    const char* what = "records import options";
+    const Json o = abi::parse_options(options_json,
+                                      {"run_id", "station_id", "operator_id", "lens_id"}, what);
+    const JournalContents journal = read_journal(journal_path);
+    if (journal.image_size.width <= 0) {
+      throw Error(ErrorCode::kState, std::string("journal '") + journal_path +
+                                         "' holds no frame: there is nothing to record");
+    }
+    RunIdentity id;
+    id.run_id = abi::get_string(o, "run_id", "", what);
+    if (id.run_id.empty()) id.run_id = new_run_id();
+    id.station_id = abi::get_string(o, "station_id", "", what);
+    id.operator_id = abi::get_string(o, "operator_id", "", what);
+    id.lens_id = abi::get_string(o, "lens_id", "", what);
+    const JournalHeader& h = journal.header;
+    id.camera_uri = h.camera_uri;
+    id.camera_id = h.camera_id;
+    id.camera_vendor = h.camera_vendor;
+    id.camera_model = h.camera_model;
+    id.camera_serial = h.camera_serial;
+    id.posecal_version = h.posecal_version;
+    id.abi_version = std::to_string(POSECAL_ABI_VERSION);
+    id.config = h.config;
+    id.started = h.created;
+    // The result: the calibration recomputed from the journal's keyframes, as a resume does.
+    std::string result_text;
+    std::optional<double> expected;
+    if (journal.keyframes.size() >= 2) {
+      RunRecord as_record;
+      as_record.summary.identity = id;
+      as_record.image_width = journal.image_size.width;
+      as_record.image_height = journal.image_size.height;
+      for (size_t i = 0; i < journal.keyframes.size(); ++i) {
+        StoredKeyframe k;
+        k.index = static_cast<int>(i) + 1;
+        k.record = keyframe_json(k.index, journal.keyframes[i]);
+        as_record.keyframes.push_back(k);
+      }
+      const Resolved solved = resolve(as_record);
+      Json result = abi::calibration_json(*solved.engine->result());
+      result["state"] = engine_state_name(solved.engine->state());
+      result["converged"] = solved.engine->converged();
+      result["keyframes"] = journal.keyframes.size();
+      result["run_id"] = id.run_id;
+      result["imported_from"] = journal_path;
+      if (result.contains("expected_error_px") && result["expected_error_px"].is_number())
+        expected = result["expected_error_px"].get<double>();
+      result_text = abi::to_text(result);
+    }
+    // A journal without its end record: the session stopped before it finished (killed, or
+    // still running elsewhere).
+    const std::string state = journal.end_state.empty() ? "interrupted" : journal.end_state;
+    auto store = RecordStore::open(location);
+    store->begin_run(id);
+    store->set_engine(id.run_id, journal.image_size, journal.locked_settings);
+    for (size_t i = 0; i < journal.keyframes.size(); ++i)
+      store->add_keyframe(id.run_id, static_cast<int>(i) + 1, journal.keyframes[i], cv::Mat());
+    store->finish_run(id.run_id, state, result_text, "", expected);
+    const Json j = {{"run_id", id.run_id},
+                    {"keyframes", journal.keyframes.size()},
+                    {"state", state},
+                    {"journal_note", journal.damage.empty() ? Json(nullptr) : Json(journal.damage)}};
+    return abi::copy_out(abi::to_text(j), buf, size);
   });
 }
 

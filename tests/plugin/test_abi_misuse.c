@@ -761,6 +761,14 @@ static void test_records(posecal_context* ctx) {
   EXPECT_STATUS(posecal_records_list(path_in("empty"), buf, &size), POSECAL_E_IO); /* a directory */
   EXPECT_MESSAGE("empty");
   EXPECT_STATUS(posecal_records_list("postgresql://127.0.0.1/r", buf, &size), POSECAL_E_UNSUPPORTED);
+  size = sizeof buf;
+  EXPECT_INVALID(posecal_records_import(NULL, path_in("x.journal"), NULL, buf, &size));
+  EXPECT_INVALID(posecal_records_import(db, NULL, NULL, buf, &size));
+  EXPECT_INVALID(posecal_records_import(db, db, "{\"lens\": 1}", buf, &size));
+  EXPECT_MESSAGE("lens");
+  EXPECT_STATUS(posecal_records_import(db, path_in("no.journal"), NULL, buf, &size), POSECAL_E_IO);
+  CHECK(posecal_records_import(db, db, NULL, buf, &size) != POSECAL_OK); /* not a journal */
+  CHECK(posecal_last_error()[0] != '\0');
   char small[8];
   size = sizeof small;
   EXPECT_STATUS(posecal_records_list(db, small, &size), POSECAL_E_BUFFER_TOO_SMALL);

@@ -1138,12 +1138,29 @@ TEST(Cli, RecordsKeepTheRunAndNeverCostTheCalibration) {
   EXPECT_EQ(r.status, 2) << r.out;
   EXPECT_NE(r.out.find("missing-dir/r.sqlite"), std::string::npos) << r.out;
 
-  r = run("simulate --seed 2 --json --records " + dir + "/no/such/dir/r.sqlite", true);
+  r = run("simulate --seed 2 --json --journal " + dir + "/s2.journal --records " + dir +
+              "/no/such/dir/r.sqlite",
+          true);
   ASSERT_EQ(r.status, 0) << r.out;  // converged all the same
   j = nlohmann::json::parse(r.out);
   ASSERT_TRUE(j["records_note"].is_string()) << r.out;
   EXPECT_NE(j["records_note"].get<std::string>().find("no/such/dir/r.sqlite"), std::string::npos);
   EXPECT_TRUE(j["converged"].get<bool>());
+  // The journal is the spool: recorded afterwards, the run re-solves to the same calibration.
+  r = run("records import " + dir + "/s2.journal --db " + db + " --lens-id M12-6mm --json", true);
+  ASSERT_EQ(r.status, 0) << r.out;
+  const auto imported = nlohmann::json::parse(r.out);
+  EXPECT_EQ(imported["state"], "converged");
+  EXPECT_EQ(imported["keyframes"], j["keyframes"]);
+  const std::string imported_id = imported["run_id"];
+  r = run("records resolve " + imported_id + " --db " + db + " --json", true);
+  ASSERT_EQ(r.status, 0) << r.out;
+  const auto solved = nlohmann::json::parse(r.out);
+  EXPECT_TRUE(solved["identical"].get<bool>()) << r.out;
+  for (const char* k : {"fx", "fy", "cx", "cy", "k1"})
+    EXPECT_EQ(solved["recomputed"][k].get<double>(), j[k].get<double>()) << k;  // bit for bit
+  r = run("records import " + db + " --db " + db);  // not a journal
+  EXPECT_EQ(r.status, 2) << r.out;
 }
 
 // A station run's directory (issue 15): the summary names the run (its id, times, version); a

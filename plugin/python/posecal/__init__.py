@@ -100,6 +100,7 @@ __all__ = [
     "records_show",
     "records_resolve",
     "records_export",
+    "records_import",
 ]
 
 _lib = _native.lib
@@ -191,6 +192,15 @@ def records_export(db: PathArg, run_id: str, path: PathArg, format: Optional[str
     extension)."""
     _check(_lib.posecal_records_export(_enc(db, "db"), _enc(run_id, "run_id"), _enc(path, "path"),
                                        _enc(format, "format")))
+
+
+def records_import(db: PathArg, journal: PathArg, **options: Any) -> Dict[str, Any]:
+    """Records a session's journal as a run (the spool of a run whose store was away).
+    options: run_id, station_id, operator_id, lens_id. Returns run_id, keyframes, state,
+    journal_note."""
+    d, j, o = _enc(db, "db"), _enc(journal, "journal"), _options(options)
+    out: Dict[str, Any] = _fetch_json(lambda b, n: _lib.posecal_records_import(d, j, o, b, n))
+    return out
 
 
 def write_target(path: PathArg, target: Optional[str] = None, dpi: float = 300.0,

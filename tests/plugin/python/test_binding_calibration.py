@@ -87,6 +87,12 @@ class Calibration(unittest.TestCase):
         self.assertTrue(os.path.getsize(yml) > 0)
         with self.assertRaises(posecal.NotFoundError):
             posecal.records_show(db, "no-such-run")
+        journal = os.path.join(self.tmp.name, "s8.journal")
+        with self.ctx.open("sim://?seed=8", journal=journal) as s:
+            list(s)
+        imported = posecal.records_import(db, journal, station_id="py-station")
+        self.assertEqual(imported["state"], "converged")
+        self.assertTrue(posecal.records_resolve(db, imported["run_id"])["identical"])
         with self.assertRaises(posecal.FileError):
             posecal.records_list(os.path.join(self.tmp.name, "no", "dir", "r.sqlite"))
 
