@@ -3,10 +3,12 @@
 #include <sqlite3.h>
 #include <unistd.h>
 
+#include <chrono>
 #include <cstdio>
 #include <cstring>
 #include <nlohmann/json.hpp>
 #include <opencv2/imgcodecs.hpp>
+#include <thread>
 
 #include "common/error.hpp"
 #include "common/run_id.hpp"
@@ -233,6 +235,29 @@ void migrate(sqlite3* db, const std::string& location) {
   t.commit();
 }
 
+// Runs a setup step of open() again while it fails on another connection's lock, for up to
+// kBusyTimeoutMs. The busy handler does not cover every lock: switching a new database to WAL
+// while another connection (a station's other camera) creates it fails with SQLITE_BUSY at once
+// (seen in CI: four cameras opening one new file).
+template <class Step>
+void setup_with_retry(sqlite3* db, Step&& step) {
+  const auto deadline =
+      std::chrono::steady_clock::now() + std::chrono::milliseconds(kBusyTimeoutMs);
+  for (;;) {
+    try {
+      step();
+      return;
+    } catch (const Error&) {
+      const int rc = sqlite3_errcode(db) & 0xff;
+      if ((rc != SQLITE_BUSY && rc != SQLITE_LOCKED) ||
+          std::chrono::steady_clock::now() > deadline) {
+        throw;
+      }
+      std::this_thread::sleep_for(std::chrono::milliseconds(20));
+    }
+  }
+}
+
 const char* kSummaryColumns =
     "r.run_id, r.station_id, r.operator_id, r.lens_id, r.camera_uri, r.camera_id, "
     "r.camera_vendor, r.camera_model, r.camera_serial, r.camera_device_version, "
@@ -278,10 +303,11 @@ std::unique_ptr<RecordStore> RecordStore::open(const std::string& location) {
   sqlite3_busy_timeout(db->handle, kBusyTimeoutMs);
   // WAL: readers do not block the writer, and a crash loses at most the transaction in flight.
   // FULL synchronous: a committed keyframe survives a power cut, as the journal's fdatasync.
-  exec(db->handle, location, "PRAGMA journal_mode = WAL", "switch to WAL");
-  exec(db->handle, location, "PRAGMA synchronous = FULL", "set synchronous");
-  exec(db->handle, location, "PRAGMA foreign_keys = ON", "enable foreign keys");
-  migrate(db->handle, location);
+  sqlite3* h = db->handle;
+  setup_with_retry(h, [&] { exec(h, location, "PRAGMA journal_mode = WAL", "switch to WAL"); });
+  exec(h, location, "PRAGMA synchronous = FULL", "set synchronous");
+  exec(h, location, "PRAGMA foreign_keys = ON", "enable foreign keys");
+  setup_with_retry(h, [&] { migrate(h, location); });
   return std::unique_ptr<RecordStore>(new RecordStore(location, std::move(db)));
 }
 
