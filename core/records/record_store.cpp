@@ -1,6 +1,5 @@
 #include "records/record_store.hpp"
 
-#include <sqlite3.h>
 #include <unistd.h>
 
 #include <chrono>
@@ -10,8 +9,10 @@
 #include <opencv2/imgcodecs.hpp>
 #include <thread>
 
+#include "common/clock.hpp"
 #include "common/error.hpp"
 #include "common/run_id.hpp"
+#include "records/sql.hpp"
 #include "session/journal.hpp"
 
 namespace posecal {
@@ -24,35 +25,45 @@ constexpr int kSchemaVersion = 1;
 constexpr int kBusyTimeoutMs = 10'000;  // another station's transaction: wait, do not fail
 
 // Version 1. A later version adds its statements to migrate() and raises kSchemaVersion.
-constexpr const char* kSchemaV1 = R"sql(
-CREATE TABLE runs (
+// Version 1, in the dialect's column types. A later version adds its statements to migrate()
+// and raises kSchemaVersion.
+std::string schema_v1(const sql::Dialect& d) {
+  const std::string i = d.integer, r = d.real, b = d.blob;
+  return std::string("CREATE TABLE runs (\n") + d.run_order_column +
+         R"sql(
   run_id TEXT PRIMARY KEY,
   station_id TEXT NOT NULL, operator_id TEXT NOT NULL, lens_id TEXT NOT NULL,
   camera_uri TEXT NOT NULL, camera_id TEXT NOT NULL, camera_vendor TEXT NOT NULL,
   camera_model TEXT NOT NULL, camera_serial TEXT NOT NULL, camera_device_version TEXT NOT NULL,
   posecal_version TEXT NOT NULL, abi_version TEXT NOT NULL,
   config TEXT NOT NULL,
-  image_width INTEGER NOT NULL DEFAULT 0, image_height INTEGER NOT NULL DEFAULT 0,
+  image_width )sql" +
+         i + R"sql( NOT NULL DEFAULT 0, image_height )sql" + i + R"sql( NOT NULL DEFAULT 0,
   locked_settings TEXT NOT NULL DEFAULT '{}',
   started TEXT NOT NULL, finished TEXT NOT NULL DEFAULT '',
   state TEXT NOT NULL DEFAULT 'running',
-  host TEXT NOT NULL DEFAULT '', pid INTEGER NOT NULL DEFAULT 0,
+  host TEXT NOT NULL DEFAULT '', pid )sql" +
+         i + R"sql( NOT NULL DEFAULT 0,
   pid_start TEXT NOT NULL DEFAULT '',
   note TEXT NOT NULL DEFAULT '',
   verdict TEXT NOT NULL DEFAULT '',
-  expected_error_px REAL,
+  expected_error_px )sql" +
+         r + R"sql(,
   result TEXT NOT NULL DEFAULT ''
 );
 CREATE TABLE keyframes (
   run_id TEXT NOT NULL REFERENCES runs(run_id),
-  idx INTEGER NOT NULL,
+  idx )sql" +
+         i + R"sql( NOT NULL,
   time TEXT NOT NULL,
   record TEXT NOT NULL,
-  image_png BLOB,
+  image_png )sql" +
+         b + R"sql(,
   PRIMARY KEY (run_id, idx)
 );
 CREATE INDEX runs_by_camera ON runs(camera_model, lens_id, state);
 )sql";
+}
 
 // This process as a record knows it: the host, the pid and the pid's start time (a pid alone
 // is reused). A run left "running" by a process that no longer exists was killed.
@@ -94,153 +105,48 @@ Writer this_writer() {
 }  // namespace
 
 struct RecordStore::Db {
-  sqlite3* handle = nullptr;
-  ~Db() {
-    if (handle) sqlite3_close_v2(handle);
-  }
+  std::unique_ptr<sql::Connection> c;
 };
 
 namespace {
 
-[[noreturn]] void fail(sqlite3* db, const std::string& location, const std::string& step) {
-  throw Error(ErrorCode::kIo, "record store '" + location + "': " + step + ": " +
-                                  (db ? sqlite3_errmsg(db) : "out of memory"));
-}
-
-// A prepared statement, finalised on every path.
-class Statement {
- public:
-  Statement(sqlite3* db, const std::string& location, const char* sql)
-      : db_(db), location_(location) {
-    if (sqlite3_prepare_v2(db, sql, -1, &stmt_, nullptr) != SQLITE_OK) fail(db, location, "prepare");
-  }
-  ~Statement() { sqlite3_finalize(stmt_); }
-  Statement(const Statement&) = delete;
-  Statement& operator=(const Statement&) = delete;
-
-  Statement& text(int i, const std::string& v) {
-    check(sqlite3_bind_text(stmt_, i, v.data(), static_cast<int>(v.size()), SQLITE_TRANSIENT));
-    return *this;
-  }
-  Statement& integer(int i, long long v) {
-    check(sqlite3_bind_int64(stmt_, i, v));
-    return *this;
-  }
-  Statement& real(int i, std::optional<double> v) {
-    check(v ? sqlite3_bind_double(stmt_, i, *v) : sqlite3_bind_null(stmt_, i));
-    return *this;
-  }
-  Statement& blob(int i, const std::vector<unsigned char>& v) {
-    check(v.empty() ? sqlite3_bind_null(stmt_, i)
-                    : sqlite3_bind_blob(stmt_, i, v.data(), static_cast<int>(v.size()),
-                                        SQLITE_TRANSIENT));
-    return *this;
-  }
-  // true while there is a row.
-  bool step() {
-    const int rc = sqlite3_step(stmt_);
-    if (rc == SQLITE_ROW) return true;
-    if (rc == SQLITE_DONE) return false;
-    fail(db_, location_, "write");
-  }
-  std::string column_text(int i) const {
-    const unsigned char* t = sqlite3_column_text(stmt_, i);
-    return t ? std::string(reinterpret_cast<const char*>(t),
-                           static_cast<size_t>(sqlite3_column_bytes(stmt_, i)))
-             : std::string();
-  }
-  long long column_int(int i) const { return sqlite3_column_int64(stmt_, i); }
-  std::optional<double> column_real(int i) const {
-    if (sqlite3_column_type(stmt_, i) == SQLITE_NULL) return std::nullopt;
-    return sqlite3_column_double(stmt_, i);
-  }
-  std::vector<unsigned char> column_blob(int i) const {
-    const auto* p = static_cast<const unsigned char*>(sqlite3_column_blob(stmt_, i));
-    return p ? std::vector<unsigned char>(p, p + sqlite3_column_bytes(stmt_, i))
-             : std::vector<unsigned char>();
-  }
-
- private:
-  void check(int rc) {
-    if (rc != SQLITE_OK) fail(db_, location_, "bind");
-  }
-  sqlite3* db_;
-  const std::string& location_;
-  sqlite3_stmt* stmt_ = nullptr;
-};
-
-void exec(sqlite3* db, const std::string& location, const char* sql, const char* step) {
-  char* err = nullptr;
-  if (sqlite3_exec(db, sql, nullptr, nullptr, &err) != SQLITE_OK) {
-    const std::string why = err ? err : sqlite3_errmsg(db);
-    sqlite3_free(err);
-    throw Error(ErrorCode::kIo, "record store '" + location + "': " + step + ": " + why);
-  }
-}
-
-// BEGIN IMMEDIATE ... COMMIT, rolled back on any exception.
-class Transaction {
- public:
-  Transaction(sqlite3* db, const std::string& location) : db_(db), location_(location) {
-    exec(db_, location_, "BEGIN IMMEDIATE", "begin a transaction");
-  }
-  void commit() {
-    exec(db_, location_, "COMMIT", "commit");
-    done_ = true;
-  }
-  ~Transaction() {
-    if (!done_) sqlite3_exec(db_, "ROLLBACK", nullptr, nullptr, nullptr);
-  }
-
- private:
-  sqlite3* db_;
-  const std::string& location_;
-  bool done_ = false;
-};
-
-int schema_version(sqlite3* db, const std::string& location) {
-  Statement has(db, location,
-                "SELECT count(*) FROM sqlite_master WHERE type = 'table' AND name = 'posecal_schema'");
-  has.step();
-  if (has.column_int(0) == 0) {
-    Statement any(db, location, "SELECT count(*) FROM sqlite_master");
-    any.step();
-    if (any.column_int(0) != 0) {
-      throw Error(ErrorCode::kIo, "record store '" + location +
+int schema_version(sql::Connection& c) {
+  if (!c.has_table("posecal_schema")) {
+    if (!c.empty()) {
+      throw Error(ErrorCode::kIo, "record store '" + c.location() +
                                       "': a database of something else (no posecal_schema table)");
     }
     return 0;
   }
-  Statement v(db, location, "SELECT max(version) FROM posecal_schema");
-  v.step();
-  return static_cast<int>(v.column_int(0));
+  return static_cast<int>(
+      c.query("SELECT max(version) FROM posecal_schema", {}, "read the schema version")[0][0]
+          .integer());
 }
 
-void migrate(sqlite3* db, const std::string& location) {
-  Transaction t(db, location);
-  const int version = schema_version(db, location);
+void migrate(sql::Connection& c) {
+  sql::Transaction t(c);
+  c.lock_setup();
+  const int version = schema_version(c);
   if (version > kSchemaVersion) {
     throw Error(ErrorCode::kInvalidArgument,
-                "record store '" + location + "' has schema version " + std::to_string(version) +
-                    "; this posecal reads up to " + std::to_string(kSchemaVersion) +
-                    " (a newer posecal wrote it)");
+                "record store '" + c.location() + "' has schema version " +
+                    std::to_string(version) + "; this posecal reads up to " +
+                    std::to_string(kSchemaVersion) + " (a newer posecal wrote it)");
   }
   if (version == 0) {
-    exec(db, location, "CREATE TABLE posecal_schema (version INTEGER NOT NULL, applied TEXT NOT NULL)",
-         "create the schema table");
-    exec(db, location, kSchemaV1, "create schema version 1");
-    exec(db, location, "INSERT INTO posecal_schema VALUES (1, strftime('%Y-%m-%dT%H:%M:%SZ', 'now'))",
-         "record schema version 1");
+    c.script("CREATE TABLE posecal_schema (version INTEGER NOT NULL, applied TEXT NOT NULL)",
+             "create the schema table");
+    c.script(schema_v1(c.dialect()), "create schema version 1");
+    c.query("INSERT INTO posecal_schema VALUES (1, ?)", {utc_now_iso8601()},
+            "record schema version 1");
   }
   t.commit();
 }
 
-// Runs a setup step of open() again while it fails on another connection's lock, for up to
-// kBusyTimeoutMs. The busy handler does not cover every lock: switching a new database to WAL
-// while another connection (a station's other camera) creates it fails with SQLITE_BUSY at once
-// (seen in CI: four cameras opening one new file).
+// Runs a set-up step of open() again while it fails on another connection's lock, for up to
+// kBusyTimeoutMs (SQLite: the busy handler does not cover every lock of a file being created).
 template <class Step>
-void setup_with_retry(sqlite3* db, Step&& step) {
+void setup_with_retry(sql::Connection& c, Step&& step) {
   const auto deadline =
       std::chrono::steady_clock::now() + std::chrono::milliseconds(kBusyTimeoutMs);
   for (;;) {
@@ -248,11 +154,7 @@ void setup_with_retry(sqlite3* db, Step&& step) {
       step();
       return;
     } catch (const Error&) {
-      const int rc = sqlite3_errcode(db) & 0xff;
-      if ((rc != SQLITE_BUSY && rc != SQLITE_LOCKED) ||
-          std::chrono::steady_clock::now() > deadline) {
-        throw;
-      }
+      if (!c.last_error_was_busy() || std::chrono::steady_clock::now() > deadline) throw;
       std::this_thread::sleep_for(std::chrono::milliseconds(20));
     }
   }
@@ -264,20 +166,24 @@ const char* kSummaryColumns =
     "r.posecal_version, r.abi_version, r.config, r.started, r.state, r.finished, r.verdict, "
     "r.expected_error_px, (SELECT count(*) FROM keyframes k WHERE k.run_id = r.run_id), r.note";
 
-RunSummary summary_of(const Statement& s) {
+RunSummary summary_of(const sql::Row& row) {
   RunSummary r;
   RunIdentity& id = r.identity;
-  int i = 0;
+  size_t i = 0;
   for (std::string* f : {&id.run_id, &id.station_id, &id.operator_id, &id.lens_id, &id.camera_uri,
                          &id.camera_id, &id.camera_vendor, &id.camera_model, &id.camera_serial,
                          &id.camera_device_version, &id.posecal_version, &id.abi_version,
                          &id.config, &id.started, &r.state, &r.finished, &r.verdict}) {
-    *f = s.column_text(i++);
+    *f = row[i++].text();
   }
-  r.expected_error_px = s.column_real(i++);
-  r.keyframes = static_cast<int>(s.column_int(i++));
-  r.note = s.column_text(i++);
+  r.expected_error_px = row[i++].real();
+  r.keyframes = static_cast<int>(row[i++].integer());
+  r.note = row[i++].text();
   return r;
+}
+
+bool is_postgresql(const std::string& location) {
+  return location.rfind("postgresql://", 0) == 0 || location.rfind("postgres://", 0) == 0;
 }
 
 }  // namespace
@@ -288,167 +194,152 @@ RecordStore::~RecordStore() = default;
 
 std::unique_ptr<RecordStore> RecordStore::open(const std::string& location) {
   if (location.empty()) throw Error(ErrorCode::kInvalidArgument, "record store: an empty location");
-  if (location.rfind("postgresql://", 0) == 0 || location.rfind("postgres://", 0) == 0) {
-    throw Error(ErrorCode::kUnsupported,
-                "record store '" + location +
-                    "': PostgreSQL stores are not built yet (issue 15); use a SQLite file path");
-  }
   auto db = std::make_unique<Db>();
-  const int rc = sqlite3_open_v2(location.c_str(), &db->handle,
-                                 SQLITE_OPEN_READWRITE | SQLITE_OPEN_CREATE | SQLITE_OPEN_FULLMUTEX |
-                                     SQLITE_OPEN_NOFOLLOW,
-                                 nullptr);
-  if (rc != SQLITE_OK) fail(db->handle, location, "open");
-  sqlite3_extended_result_codes(db->handle, 1);
-  sqlite3_busy_timeout(db->handle, kBusyTimeoutMs);
-  // WAL: readers do not block the writer, and a crash loses at most the transaction in flight.
-  // FULL synchronous: a committed keyframe survives a power cut, as the journal's fdatasync.
-  sqlite3* h = db->handle;
-  setup_with_retry(h, [&] { exec(h, location, "PRAGMA journal_mode = WAL", "switch to WAL"); });
-  exec(h, location, "PRAGMA synchronous = FULL", "set synchronous");
-  exec(h, location, "PRAGMA foreign_keys = ON", "enable foreign keys");
-  setup_with_retry(h, [&] { migrate(h, location); });
-  return std::unique_ptr<RecordStore>(new RecordStore(location, std::move(db)));
+  db->c = is_postgresql(location) ? sql::open_postgresql(location, kBusyTimeoutMs)
+                                  : sql::open_sqlite(location, kBusyTimeoutMs);
+  sql::Connection& c = *db->c;
+  setup_with_retry(c, [&] { migrate(c); });
+  const std::string shown = c.location();  // a URL's password is not repeated
+  return std::unique_ptr<RecordStore>(new RecordStore(shown, std::move(db)));
 }
 
 void RecordStore::begin_run(const RunIdentity& r) {
+  sql::Connection& c = *db_->c;
   const Writer me = this_writer();
-  Transaction t(db_->handle, location_);
-  {
-    // Runs of this host left "running" by a process that is gone were killed (kill -9, a power
-    // cut): they are marked so, with what they kept.
-    Statement running(db_->handle, location_,
-                      "SELECT run_id, pid, pid_start FROM runs WHERE state = 'running' AND host = ?");
-    running.text(1, me.host);
-    std::vector<std::pair<std::string, long long>> dead;
-    while (running.step()) {
-      const long long pid = running.column_int(1);
-      if (pid > 0 && process_start(pid) != running.column_text(2))
-        dead.emplace_back(running.column_text(0), pid);
-    }
-    for (const auto& [id, pid] : dead) {
-      Statement mark(db_->handle, location_,
-                     "UPDATE runs SET state = 'killed', note = ?, "
-                     "finished = strftime('%Y-%m-%dT%H:%M:%SZ', 'now') WHERE run_id = ?");
-      mark.text(1, "its process (pid " + std::to_string(pid) +
-                       ") ended without finishing the run; found when run " + r.run_id + " began")
-          .text(2, id)
-          .step();
-    }
+  sql::Transaction t(c);
+  // Runs of this host left "running" by a process that is gone were killed (kill -9, a power
+  // cut): they are marked so, with what they kept.
+  for (const sql::Row& row :
+       c.query("SELECT run_id, pid, pid_start FROM runs WHERE state = 'running' AND host = ?",
+               {me.host}, "read the running runs")) {
+    const long long pid = row[1].integer();
+    if (pid <= 0 || process_start(pid) == row[2].text()) continue;
+    c.query("UPDATE runs SET state = 'killed', note = ?, finished = ? WHERE run_id = ?",
+            {"its process (pid " + std::to_string(pid) +
+                 ") ended without finishing the run; found when run " + r.run_id + " began",
+             utc_now_iso8601(), row[0].text()},
+            "mark a killed run");
   }
-  Statement exists(db_->handle, location_, "SELECT count(*) FROM runs WHERE run_id = ?");
-  exists.text(1, r.run_id).step();
-  if (exists.column_int(0) != 0) {
+  if (c.query("SELECT count(*) FROM runs WHERE run_id = ?", {r.run_id}, "look up the run id")[0][0]
+          .integer() != 0) {
     throw Error(ErrorCode::kInvalidArgument,
                 "record store '" + location_ + "': run id " + r.run_id + " is already recorded");
   }
-  Statement s(db_->handle, location_,
-              "INSERT INTO runs (run_id, station_id, operator_id, lens_id, camera_uri, camera_id, "
-              "camera_vendor, camera_model, camera_serial, camera_device_version, "
-              "posecal_version, abi_version, config, started, host, pid, pid_start) "
-              "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)");
-  int i = 1;
+  std::vector<sql::Value> values;
   for (const std::string* f : {&r.run_id, &r.station_id, &r.operator_id, &r.lens_id,
                                &r.camera_uri, &r.camera_id, &r.camera_vendor, &r.camera_model,
                                &r.camera_serial, &r.camera_device_version, &r.posecal_version,
                                &r.abi_version, &r.config, &r.started}) {
-    s.text(i++, *f);
+    values.emplace_back(*f);
   }
-  s.text(i, me.host).integer(i + 1, me.pid).text(i + 2, me.start);
-  s.step();
+  values.emplace_back(me.host);
+  values.emplace_back(me.pid);
+  values.emplace_back(me.start);
+  c.query(
+      "INSERT INTO runs (run_id, station_id, operator_id, lens_id, camera_uri, camera_id, "
+      "camera_vendor, camera_model, camera_serial, camera_device_version, "
+      "posecal_version, abi_version, config, started, host, pid, pid_start) "
+      "VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+      values, "begin the run");
   t.commit();
 }
 
 void RecordStore::set_engine(const std::string& run_id, cv::Size size,
                              const std::map<std::string, std::string>& locked) {
-  Transaction t(db_->handle, location_);
-  Statement s(db_->handle, location_,
-              "UPDATE runs SET image_width = ?, image_height = ?, locked_settings = ? "
-              "WHERE run_id = ?");
-  s.integer(1, size.width)
-      .integer(2, size.height)
-      .text(3, Json(locked).dump(-1, ' ', false, Json::error_handler_t::replace))
-      .text(4, run_id)
-      .step();
+  sql::Connection& c = *db_->c;
+  sql::Transaction t(c);
+  c.query(
+      "UPDATE runs SET image_width = ?, image_height = ?, locked_settings = ? "
+      "WHERE run_id = ?",
+      {static_cast<long long>(size.width), static_cast<long long>(size.height),
+       Json(locked).dump(-1, ' ', false, Json::error_handler_t::replace), run_id},
+      "record the engine");
   t.commit();
 }
 
-void RecordStore::add_keyframe(const std::string& run_id, int index, const KeyframeRecord& record,
-                               const cv::Mat& image) {
-  const std::string text = keyframe_json(index, record);
-  std::vector<unsigned char> png;
-  if (!image.empty() && !cv::imencode(".png", image, png)) png.clear();
-  Transaction t(db_->handle, location_);
-  // INSERT OR REPLACE: a session resumed from its journal records a keyframe again under the
-  // same run id only if it was lost here.
-  Statement s(db_->handle, location_,
-              "INSERT OR REPLACE INTO keyframes (run_id, idx, time, record, image_png) "
-              "VALUES (?, ?, ?, ?, ?)");
-  s.text(1, run_id)
-      .integer(2, index)
-      .text(3, Json::parse(text).value("time", ""))
-      .text(4, text)
-      .blob(5, png)
-      .step();
+StoredKeyframe stored_keyframe(int index, const KeyframeRecord& record, const cv::Mat& image) {
+  StoredKeyframe k;
+  k.index = index;
+  k.time = utc_now_iso8601();
+  k.record = keyframe_json(index, record, k.time);
+  if (!image.empty() && !cv::imencode(".png", image, k.image_png)) k.image_png.clear();
+  return k;
+}
+
+void RecordStore::add_keyframe(const std::string& run_id, const StoredKeyframe& k) {
+  sql::Connection& c = *db_->c;
+  sql::Transaction t(c);
+  // An upsert: a session resumed from its journal records a keyframe again under the same run
+  // id only if it was lost here.
+  c.query(
+      "INSERT INTO keyframes (run_id, idx, time, record, image_png) VALUES (?, ?, ?, ?, ?) "
+      "ON CONFLICT (run_id, idx) DO UPDATE SET time = excluded.time, "
+      "record = excluded.record, image_png = excluded.image_png",
+      {run_id, static_cast<long long>(k.index), k.time, k.record, k.image_png}, "add a keyframe");
   t.commit();
 }
 
 void RecordStore::finish_run(const std::string& run_id, const std::string& state,
                              const std::string& result_json, const std::string& verdict,
                              std::optional<double> expected_error_px) {
-  Transaction t(db_->handle, location_);
-  Statement s(db_->handle, location_,
-              "UPDATE runs SET state = ?, result = ?, verdict = ?, expected_error_px = ?, "
-              "finished = strftime('%Y-%m-%dT%H:%M:%SZ', 'now') WHERE run_id = ?");
-  s.text(1, state).text(2, result_json).text(3, verdict).real(4, expected_error_px).text(5, run_id);
-  s.step();
+  sql::Connection& c = *db_->c;
+  sql::Transaction t(c);
+  c.query(
+      "UPDATE runs SET state = ?, result = ?, verdict = ?, expected_error_px = ?, "
+      "finished = ? WHERE run_id = ?",
+      {state, result_json, verdict,
+       expected_error_px ? sql::Value(*expected_error_px) : sql::Value(nullptr), utc_now_iso8601(),
+       run_id},
+      "finish the run");
   t.commit();
 }
 
 std::vector<RunSummary> RecordStore::list_runs() const {
-  Statement s(db_->handle, location_,
-              (std::string("SELECT ") + kSummaryColumns +
-               " FROM runs r ORDER BY r.started DESC, r.rowid DESC")
-                  .c_str());
+  sql::Connection& c = *db_->c;
   std::vector<RunSummary> out;
-  while (s.step()) out.push_back(summary_of(s));
+  for (const sql::Row& row :
+       c.query(std::string("SELECT ") + kSummaryColumns + " FROM runs r ORDER BY r.started DESC, " +
+                   c.dialect().run_order + " DESC",
+               {}, "list the runs")) {
+    out.push_back(summary_of(row));
+  }
   return out;
 }
 
 RunRecord RecordStore::get_run(const std::string& run_id) const {
   if (run_id.empty()) throw Error(ErrorCode::kInvalidArgument, "records: an empty run id");
-  Statement s(db_->handle, location_,
-              (std::string("SELECT ") + kSummaryColumns +
-               ", r.image_width, r.image_height, r.locked_settings, r.result FROM runs r "
-               "WHERE substr(r.run_id, 1, length(?1)) = ?1")
-                  .c_str());
-  s.text(1, run_id);
-  if (!s.step()) {
-    throw Error(ErrorCode::kNotFound,
-                "record store '" + location_ + "' has no run " + run_id);
+  sql::Connection& c = *db_->c;
+  const std::vector<sql::Row> rows =
+      c.query(std::string("SELECT ") + kSummaryColumns +
+                  ", r.image_width, r.image_height, r.locked_settings, r.result FROM runs r "
+                  "WHERE substr(r.run_id, 1, length(?)) = ? LIMIT 2",
+              {run_id, run_id}, "read the run");
+  if (rows.empty()) {
+    throw Error(ErrorCode::kNotFound, "record store '" + location_ + "' has no run " + run_id);
   }
-  RunRecord r;
-  r.summary = summary_of(s);
-  r.image_width = static_cast<int>(s.column_int(20));
-  r.image_height = static_cast<int>(s.column_int(21));
-  const Json locked = Json::parse(s.column_text(22), nullptr, false);
-  if (locked.is_object()) {
-    for (const auto& [k, v] : locked.items()) r.locked_settings[k] = v.is_string() ? v.get<std::string>() : v.dump();
-  }
-  r.result = s.column_text(23);
-  if (s.step()) {
+  if (rows.size() > 1) {
     throw Error(ErrorCode::kInvalidArgument,
                 "records: run id " + run_id + " is ambiguous in '" + location_ + "'");
   }
-  Statement k(db_->handle, location_,
-              "SELECT idx, time, record, image_png FROM keyframes WHERE run_id = ? ORDER BY idx");
-  k.text(1, r.summary.identity.run_id);
-  while (k.step()) {
+  const sql::Row& row = rows[0];
+  RunRecord r;
+  r.summary = summary_of(row);
+  r.image_width = static_cast<int>(row[20].integer());
+  r.image_height = static_cast<int>(row[21].integer());
+  const Json locked = Json::parse(row[22].text(), nullptr, false);
+  if (locked.is_object()) {
+    for (const auto& [k, v] : locked.items())
+      r.locked_settings[k] = v.is_string() ? v.get<std::string>() : v.dump();
+  }
+  r.result = row[23].text();
+  for (const sql::Row& k : c.query("SELECT idx, time, record, image_png FROM keyframes "
+                                   "WHERE run_id = ? ORDER BY idx",
+                                   {r.summary.identity.run_id}, "read the keyframes")) {
     StoredKeyframe f;
-    f.index = static_cast<int>(k.column_int(0));
-    f.time = k.column_text(1);
-    f.record = k.column_text(2);
-    f.image_png = k.column_blob(3);
+    f.index = static_cast<int>(k[0].integer());
+    f.time = k[1].text();
+    f.record = k[2].text();
+    f.image_png = k[3].blob();
     r.keyframes.push_back(std::move(f));
   }
   return r;

@@ -9,10 +9,11 @@
 // finish time. Each call below is one transaction, so a crash loses at most the keyframe in
 // flight; a run that never finished stays in state "running".
 //
-// Store: SQLite (a file path), WAL mode, a busy timeout so that two stations writing one file
-// wait for each other instead of failing. Schema version 1 (table posecal_schema; a newer
-// version is refused, an older one migrated). PostgreSQL (`postgresql://` URLs) is not built
-// yet: such a location is refused with Error(kUnsupported) saying so.
+// Stores: SQLite (a file path), WAL mode, a busy timeout so that two stations writing one file
+// wait for each other instead of failing; PostgreSQL (a `postgresql://` URL) so that the
+// stations of a line share one server. One schema in both (records/sql.hpp holds what differs
+// between them), version 1 (table posecal_schema; a newer version is refused, an older one
+// migrated). A store that goes away during a run: records/record_writer.hpp.
 #pragma once
 
 #include <map>
@@ -62,12 +63,16 @@ struct RunRecord {
   std::vector<StoredKeyframe> keyframes;
 };
 
+// A keyframe as a record stores it: the journal's record stamped now, its image as PNG (none if
+// `image` is empty).
+StoredKeyframe stored_keyframe(int index, const KeyframeRecord& record, const cv::Mat& image);
+
 class RecordStore {
  public:
-  // Opens (and creates) the store at `location`: a file path (SQLite). Throws Error(kIo) naming
-  // the store and the cause if it cannot be opened or is not a posecal record database,
-  // Error(kUnsupported) for a postgresql:// URL (not built yet), Error(kInvalidArgument) for a
-  // database of a newer schema version.
+  // Opens (and creates) the store at `location`: a file path (SQLite) or a postgresql:// URL
+  // (the database must exist; its tables are created). Throws Error(kIo) naming the store
+  // (a URL without its password) and the cause if it cannot be opened or is not a posecal
+  // record database, Error(kInvalidArgument) for a database of a newer schema version.
   static std::unique_ptr<RecordStore> open(const std::string& location);
   ~RecordStore();
   RecordStore(const RecordStore&) = delete;
@@ -83,8 +88,7 @@ class RecordStore {
   void begin_run(const RunIdentity& run);
   void set_engine(const std::string& run_id, cv::Size image_size,
                   const std::map<std::string, std::string>& locked_settings);
-  void add_keyframe(const std::string& run_id, int index, const KeyframeRecord& record,
-                    const cv::Mat& image);
+  void add_keyframe(const std::string& run_id, const StoredKeyframe& keyframe);
   void finish_run(const std::string& run_id, const std::string& state,
                   const std::string& result_json, const std::string& verdict,
                   std::optional<double> expected_error_px);

@@ -92,10 +92,11 @@ KeyframeRecord keyframe_of(const Json& j) {
 
 // A keyframe record without its image: "type", "index", "time" and the record's fields (the
 // doubles written so that they read back bit for bit).
-Json keyframe_json_object(int index, const KeyframeRecord& r) {
+Json keyframe_json_object(int index, const KeyframeRecord& r,
+                          const std::string& time = utc_now_iso8601()) {
   return {{"type", "keyframe"},
           {"index", index},
-          {"time", utc_now_iso8601()},
+          {"time", time},
           {"state_before", engine_state_name(r.state_before)},
           {"target_param", r.target_param},
           {"state_after", engine_state_name(r.state_after)},
@@ -251,8 +252,8 @@ void JournalWriter::append_engine(cv::Size size, const std::map<std::string, std
   append(j.dump(-1, ' ', false, Json::error_handler_t::replace));
 }
 
-std::string keyframe_json(int index, const KeyframeRecord& r) {
-  return keyframe_json_object(index, r).dump(-1, ' ', false, Json::error_handler_t::replace);
+std::string keyframe_json(int index, const KeyframeRecord& r, const std::string& time) {
+  return keyframe_json_object(index, r, time).dump(-1, ' ', false, Json::error_handler_t::replace);
 }
 
 KeyframeRecord keyframe_from_json(const std::string& text) {

@@ -55,8 +55,8 @@ JournalContents read_journal(const std::string& path);
 
 // One keyframe as the journal's JSON record (without the image), and back: the record a
 // traceable calibration record (core/records) stores per keyframe. keyframe_from_json throws
-// Error(kInvalidArgument) naming what is wrong.
-std::string keyframe_json(int index, const KeyframeRecord& record);
+// Error(kInvalidArgument) naming what is wrong. `time` is the keyframe's (UTC, ISO 8601).
+std::string keyframe_json(int index, const KeyframeRecord& record, const std::string& time);
 KeyframeRecord keyframe_from_json(const std::string& text);
 
 // Appends records to a journal; every append is durable (fdatasync) when it returns and throws

@@ -151,6 +151,8 @@ void calibrate_one(StationShared* shared, StationJob* job, Clock::time_point t0)
   config["journal"] = job->journal;
   // Every camera's run is recorded, by default in DIR/records.sqlite (core/records).
   if (!config.contains("records")) config["records"] = o.out_dir + "/records.sqlite";
+  // A run the store could not take by its finish waits in DIR/records-spool for the next run.
+  if (!config.contains("records_spool")) config["records_spool"] = o.out_dir + "/records-spool";
   Session s(shared->ctx, job->uri, config);
   const Json camera = fetch_status(s.get())["camera"];
   out["camera"] = camera;
@@ -388,11 +390,14 @@ Command add_station(CLI::App* app) {
   auto o = std::make_shared<StationOptions>();
   CLI::App* cmd =
       app->add_subcommand("station", "calibrate several cameras concurrently (one thread each)");
-  cmd->footer("Writes DIR/<camera id>.<format> per camera and DIR/summary.json; keeps each\n"
-              "camera's journal in DIR/journal/ (the same command again resumes an interrupted\n"
-              "or killed run; a finished one is calibrated over only with --force) and every\n"
-              "camera's record in DIR/records.sqlite (--records for another store).\n" +
-              target_spec_help());
+  cmd->footer(
+      "Writes DIR/<camera id>.<format> per camera and DIR/summary.json; keeps each\n"
+      "camera's journal in DIR/journal/ (the same command again resumes an interrupted\n"
+      "or killed run; a finished one is calibrated over only with --force) and every\n"
+      "camera's record in DIR/records.sqlite (--records for another store, e.g. a\n"
+      "postgresql:// URL; a run the store was away for waits in DIR/records-spool and\n"
+      "is written into it by a later run).\n" +
+      target_spec_help());
   cmd->add_option("--cameras", o->cameras, "the cameras")
       ->type_name("URI,URI,...")
       ->required()

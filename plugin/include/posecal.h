@@ -159,12 +159,12 @@ POSECAL_API posecal_status posecal_write_target_ex(const char* target_spec, cons
                                                    const char* options_json) POSECAL_NOEXCEPT;
 
 /* Calibration records (session key "records"; docs/c-api.md, "Records"). `location` is the
- * store: a SQLite file written by sessions with "records". Any thread; each call opens the store
- * itself (waiting up to 10 s for another process's write). POSECAL_E_IO names the store and
+ * store: a SQLite file or a postgresql:// URL written by sessions with "records". Any thread;
+ * each call opens the store itself (waiting up to 10 s for another writer's lock; a server that
+ * does not answer is given up after its connect timeout, 10 s). POSECAL_E_IO names the store and
  * the cause if it cannot be opened or is not a posecal record database; POSECAL_E_NOT_FOUND
  * for a run id it does not hold (a unique prefix of a run id is accepted, an ambiguous one is
- * POSECAL_E_INVALID_ARGUMENT); POSECAL_E_UNSUPPORTED for a postgresql:// location (not built
- * yet).
+ * POSECAL_E_INVALID_ARGUMENT).
  * posecal_records_list: a JSON array of the runs, newest first, each {"run_id", "station_id",
  * "operator_id", "lens_id", "camera" {uri, id, vendor, model, serial, transport},
  * "posecal_version", "abi_version", "started", "finished" (null while running or after a
@@ -334,11 +334,15 @@ typedef struct posecal_image {
  *   "spec" (unset; a JSON file of quality limits, read at open: the result gets "verdict"
  *   "pass"/"fail" and "verdict_reasons"; a malformed file is POSECAL_E_INVALID_ARGUMENT naming
  *   the file and the key; docs/c-api.md, "Quality gate");
- *   "records" (unset; a SQLite file, created if needed: the run is recorded there, its
+ *   "records" (unset; a SQLite file, created if needed, or a postgresql:// URL: the run is
+ *   recorded there, its
  *   identity at open, every keyframe (detections and image) in its own transaction as it is
  *   captured, the result and verdict when the session finishes or is closed; status and result
  *   say "records", "run_id" and "records_note"; a store that cannot be opened or written does
- *   not stop the calibration: "records_note" says why it was not recorded), "run_id" (unset: a
+ *   not stop the calibration: the parts it could not take are written when it is back, at the
+ *   next keyframe or the finish, and "records_note" says what is behind), "records_spool"
+ *   (unset; a directory: a run the store was still away for at its finish is kept there and
+ *   written into the store when a later run opens it), "run_id" (unset: a
  *   new random UUID; a run id already in the store is not recorded again), "station_id",
  *   "operator_id", "lens_id" (unset; recorded with the run). docs/c-api.md, "Records".
  * An unknown key is POSECAL_E_INVALID_ARGUMENT. Opening a camera may block up to ~3 s. The

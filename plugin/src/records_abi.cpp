@@ -221,7 +221,7 @@ POSECAL_API posecal_status posecal_records_import(const char* location, const ch
       for (size_t i = 0; i < journal.keyframes.size(); ++i) {
         StoredKeyframe k;
         k.index = static_cast<int>(i) + 1;
-        k.record = keyframe_json(k.index, journal.keyframes[i]);
+        k.record = keyframe_json(k.index, journal.keyframes[i], utc_now_iso8601());
         as_record.keyframes.push_back(k);
       }
       const Resolved solved = resolve(as_record);
@@ -242,7 +242,8 @@ POSECAL_API posecal_status posecal_records_import(const char* location, const ch
     store->begin_run(id);
     store->set_engine(id.run_id, journal.image_size, journal.locked_settings);
     for (size_t i = 0; i < journal.keyframes.size(); ++i)
-      store->add_keyframe(id.run_id, static_cast<int>(i) + 1, journal.keyframes[i], cv::Mat());
+      store->add_keyframe(
+          id.run_id, stored_keyframe(static_cast<int>(i) + 1, journal.keyframes[i], cv::Mat()));
     store->finish_run(id.run_id, state, result_text, "", expected);
     const Json j = {{"run_id", id.run_id},
                     {"keyframes", journal.keyframes.size()},

@@ -18,11 +18,13 @@
 #include "evaluation.hpp"
 #include "json_report.hpp"
 #include "lens/lens_models.hpp"
+#include "posecal.h"
 #include "quality_gate.hpp"
 #include "records/record_store.hpp"
-#include "session_config.hpp"
-#include "posecal.h"
+#include "records/record_writer.hpp"
+#include "records/sql.hpp"
 #include "session/session.hpp"
+#include "session_config.hpp"
 #include "sim/sim_camera.hpp"
 
 using namespace posecal;
@@ -48,9 +50,10 @@ struct posecal_session {
   // The "spec" key's quality specification, if any: the result's verdict.
   std::optional<abi::QualitySpec> spec;
   // The "records" key's store (core/records) and this run's id. A store that cannot be opened or
-  // written does not stop the calibration: the record stops, records_note says why.
-  std::unique_ptr<RecordStore> records;
-  std::string records_location, run_id, records_note;
+  // written does not stop the calibration: the writer keeps the parts it could not write (and
+  // spools them at the finish, with "records_spool"); records_note says what happened.
+  std::unique_ptr<RecordWriter> records;
+  std::string records_location, run_id;
   bool record_finished = false;
   // sim:// only: the fixed test set, rendered once, and the evaluation of the last result.
   std::vector<Observation> test_set;
@@ -95,19 +98,8 @@ bool was_interrupted(posecal_session* s) {
 void records_json(const posecal_session* s, Json* j) {
   (*j)["records"] = s->records_location.empty() ? Json(nullptr) : Json(s->records_location);
   (*j)["run_id"] = s->run_id.empty() ? Json(nullptr) : Json(s->run_id);
-  (*j)["records_note"] = s->records_note.empty() ? Json(nullptr) : Json(s->records_note);
-}
-
-// One write to the record store; a failure stops the record (the calibration goes on).
-template <class F>
-void record(posecal_session* s, F&& write) {
-  if (!s->records) return;
-  try {
-    write(*s->records);
-  } catch (const std::exception& e) {
-    s->records.reset();
-    s->records_note = std::string("the record stopped: ") + e.what();
-  }
+  const std::string note = s->records ? s->records->note() : std::string();
+  (*j)["records_note"] = note.empty() ? Json(nullptr) : Json(note);
 }
 
 // The journal's part of status and result: where it is, what a resume restored.
@@ -376,7 +368,7 @@ void finish_record(posecal_session* s, const std::string& state) {
     expected = j["expected_error_px"].get<double>();
   const std::string verdict = j.contains("verdict") && j["verdict"].is_string() ? j["verdict"].get<std::string>() : "";
   const std::string text = j.empty() ? std::string() : abi::to_text(j);
-  record(s, [&](RecordStore& r) { r.finish_run(s->run_id, state, text, verdict, expected); });
+  s->records->finish(state, text, verdict, expected);
 }
 
 }  // namespace
@@ -407,7 +399,7 @@ namespace {
 // the engine keeps it (one transaction each). A store that cannot be opened does not stop the
 // calibration: the session goes on unrecorded and says why (records_note).
 void open_record(posecal_session* s, const SessionOptions& o, const Json& config) {
-  s->records_location = o.records;
+  s->records_location = sql::redact_url(o.records);
   s->run_id = o.run_id.empty() ? new_run_id() : o.run_id;
   RunIdentity id;
   id.run_id = s->run_id;
@@ -424,20 +416,13 @@ void open_record(posecal_session* s, const SessionOptions& o, const Json& config
   id.abi_version = std::to_string(POSECAL_ABI_VERSION);
   id.config = abi::to_text(config);
   id.started = utc_now_iso8601();
-  try {
-    s->records = RecordStore::open(o.records);
-    s->records->begin_run(id);
-  } catch (const std::exception& e) {
-    s->records.reset();
-    s->records_note = std::string("not recorded: ") + e.what();
-    return;
-  }
+  s->records = std::make_unique<RecordWriter>(o.records, id, o.records_spool);
   CalibrationSession::KeyframeObserver observer;
   observer.on_engine = [s](cv::Size size, const std::map<std::string, std::string>& locked) {
-    record(s, [&](RecordStore& r) { r.set_engine(s->run_id, size, locked); });
+    s->records->set_engine(size, locked);
   };
   observer.on_keyframe = [s](int index, const KeyframeRecord& k, const cv::Mat& image) {
-    record(s, [&](RecordStore& r) { r.add_keyframe(s->run_id, index, k, image); });
+    s->records->add_keyframe(stored_keyframe(index, k, image));
   };
   s->session->set_keyframe_observer(std::move(observer));
 }
@@ -498,8 +483,8 @@ POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char
       // The config a journal is resumed with must be the one it was recorded with, but for
       // the journal's own keys.
       Json recorded = c;
-      for (const char* k : {"journal", "journal_images", "resume", "spec", "records", "run_id",
-                            "station_id", "operator_id", "lens_id"})
+      for (const char* k : {"journal", "journal_images", "resume", "spec", "records",
+                            "records_spool", "run_id", "station_id", "operator_id", "lens_id"})
         recorded.erase(k);
       s->session->open_journal(so_config.journal, abi::to_text(recorded), so_config.journal_images,
                                so_config.resume);

@@ -22,6 +22,7 @@
 
 #include "board/board.hpp"
 #include "io/model_file.hpp"
+#include "pg_server.hpp"
 #include "records/record_store.hpp"
 #include "session/journal.hpp"
 
@@ -532,13 +533,18 @@ TEST(Cli, OperatorIsASessionKey) {
 
 // posecal station over four simulated cameras: all converge, one result file per camera named
 // by its identity, and a summary.
-TEST(Cli, StationOfFourSimulatedCamerasConverges) {
-  const std::string dir = temp_dir("posecal_station4");
+namespace {
+
+// A station of four simulated cameras (one a robot), recorded in `records` (the station's
+// default DIR/records.sqlite if empty): every camera converges, its model file is written, and
+// its record is complete and re-solves bit for bit (records resolve / export).
+void check_station_of_four(const std::string& dir, const std::string& records) {
+  const std::string db = records.empty() ? dir + "/records.sqlite" : records;
   const auto t0 = std::chrono::steady_clock::now();
   const CliRun r =
       run("station --cameras 'sim://?seed=51,sim://?seed=52,sim://?seed=53,"
           "sim://?seed=54&operator=robot' --out-dir " +
-              dir + " --json",
+              dir + (records.empty() ? "" : " --records '" + records + "'") + " --json",
           true);
   const double wall_s =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
@@ -565,9 +571,9 @@ TEST(Cli, StationOfFourSimulatedCamerasConverges) {
   std::ifstream summary(dir + "/summary.json");
   ASSERT_TRUE(summary.good());
   EXPECT_EQ(nlohmann::json::parse(summary)["converged"], 4);
-  // Every camera's run is recorded in DIR/records.sqlite (four writers on one file): complete,
-  // converged, its keyframes with their detections and frames.
-  auto store = posecal::RecordStore::open(dir + "/records.sqlite");
+  // Every camera's run is recorded (four writers on one store): complete, converged, its
+  // keyframes with their detections and frames.
+  auto store = posecal::RecordStore::open(db);
   EXPECT_EQ(store->list_runs().size(), 4u);
   for (const auto& c : j["cameras"]) {
     ASSERT_TRUE(c["run_id"].is_string()) << c.dump();
@@ -586,14 +592,14 @@ TEST(Cli, StationOfFourSimulatedCamerasConverges) {
     EXPECT_EQ(result["run_id"], c["run_id"]);
     // records resolve: the calibration again from the stored detections, bit for bit.
     const std::string run_id = c["run_id"].get<std::string>();
-    const CliRun rr = run("records resolve " + run_id + " --db " + dir + "/records.sqlite --json", true);
+    const CliRun rr = run("records resolve " + run_id + " --db '" + db + "' --json", true);
     ASSERT_EQ(rr.status, 0) << rr.out;
     const auto rj = nlohmann::json::parse(rr.out);
     EXPECT_TRUE(rj["identical"].get<bool>()) << rr.out;
     EXPECT_EQ(rj["recomputed"], rj["stored"]);
     // records export: the re-solved model file equals the one the station wrote.
     const std::string exp_dir = dir + "/export-" + run_id;
-    const CliRun re = run("records export " + run_id + " --db " + dir + "/records.sqlite --out-dir " + exp_dir);
+    const CliRun re = run("records export " + run_id + " --db '" + db + "' --out-dir " + exp_dir);
     ASSERT_EQ(re.status, 0) << re.out;
     const std::string id = c["camera"]["id"].get<std::string>();
     EXPECT_EQ(posecal::read_camera_model(exp_dir + "/" + id + ".yml").params(),
@@ -602,12 +608,25 @@ TEST(Cli, StationOfFourSimulatedCamerasConverges) {
     ASSERT_TRUE(exported_record.good());
     EXPECT_EQ(nlohmann::json::parse(exported_record)["keyframes"].size(), rec.keyframes.size());
   }
-  const CliRun rl = run("records list --db " + dir + "/records.sqlite --json", true);
+  const CliRun rl = run("records list --db '" + db + "' --json", true);
   ASSERT_EQ(rl.status, 0) << rl.out;
   EXPECT_EQ(nlohmann::json::parse(rl.out).size(), 4u);
   // The cameras ran concurrently: the whole station took less than their sum.
   std::printf("station: %.1f s wall, %.1f s summed over the cameras\n", wall_s, sum_camera_s);
   EXPECT_LT(wall_s, sum_camera_s);
+}
+
+}  // namespace
+
+TEST(Cli, StationOfFourSimulatedCamerasConverges) {
+  check_station_of_four(temp_dir("posecal_station4"), "");
+}
+
+// The same station recording to a line's PostgreSQL server (started by the test).
+TEST(Cli, StationOfFourSimulatedCamerasRecordsToPostgreSQL) {
+  posecal::testing_pg::PgServer server;
+  ASSERT_TRUE(server.error().empty()) << server.error();
+  check_station_of_four(temp_dir("posecal_station4_pg"), server.create_database("station"));
 }
 
 TEST(Cli, StationReportsFailedCamerasAndIdentityClashes) {

@@ -1,7 +1,8 @@
 // Calibration records (core/records): a run's identity, keyframes and result round-trip
-// exactly through the SQLite store; each call is its own transaction, so a run cut short stays
-// readable ("running"); two writers on one file do not lose or corrupt a record; bad stores are
-// refused naming the store and the cause.
+// exactly; each call is its own transaction, so a run cut short stays readable ("running"); two
+// writers on one store do not lose or corrupt a record; bad stores are refused naming the store
+// and the cause. The same tests run against both stores: a SQLite file and a PostgreSQL server
+// the test starts itself (tests/pg_server.hpp).
 #include <gtest/gtest.h>
 #include <sqlite3.h>
 #include <sys/wait.h>
@@ -14,7 +15,10 @@
 #include <thread>
 
 #include "common/error.hpp"
+#include "pg_server.hpp"
 #include "records/record_store.hpp"
+#include "records/record_writer.hpp"
+#include "records/sql.hpp"
 #include "session/journal.hpp"
 
 using namespace posecal;
@@ -62,6 +66,32 @@ RunIdentity identity(const std::string& run_id) {
   return id;
 }
 
+// The store under test: "sqlite" (a file in a fresh directory) or "postgresql" (a fresh
+// database on the server this test process started).
+class Store : public testing::TestWithParam<std::string> {
+ protected:
+  static void TearDownTestSuite() { server().reset(); }
+  void SetUp() override {
+    if (GetParam() == "postgresql") {
+      if (!server()) server() = std::make_unique<testing_pg::PgServer>();
+      ASSERT_TRUE(server()->error().empty()) << server()->error();
+    }
+  }
+  static std::unique_ptr<testing_pg::PgServer>& server() {
+    static std::unique_ptr<testing_pg::PgServer> s;
+    return s;
+  }
+  // A new, empty store.
+  std::string fresh_store(const std::string& name) {
+    if (GetParam() == "sqlite") return (fresh(name) / "records.sqlite").string();
+    return server()->create_database(name);
+  }
+  bool postgresql() const { return GetParam() == "postgresql"; }
+};
+
+INSTANTIATE_TEST_SUITE_P(Records, Store, testing::Values("sqlite", "postgresql"),
+                         [](const testing::TestParamInfo<std::string>& i) { return i.param; });
+
 }  // namespace
 
 TEST(Records, RunIdsAreRandomVersion4Uuids) {
@@ -76,8 +106,8 @@ TEST(Records, RunIdsAreRandomVersion4Uuids) {
   EXPECT_EQ(ids.size(), 1000u);
 }
 
-TEST(Records, ARunRoundTripsExactly) {
-  const std::string db = (fresh("roundtrip") / "records.sqlite").string();
+TEST_P(Store, ARunRoundTripsExactly) {
+  const std::string db = fresh_store("roundtrip");
   const std::string run = new_run_id();
   {
     auto store = RecordStore::open(db);
@@ -85,8 +115,8 @@ TEST(Records, ARunRoundTripsExactly) {
     store->set_engine(run, cv::Size(1280, 720), {{"exposure_us", "10000"}, {"gain_db", "0"}});
     cv::Mat image(48, 64, CV_8U);
     cv::randu(image, 0, 256);
-    store->add_keyframe(run, 1, sample(0), image);
-    store->add_keyframe(run, 2, sample(1), cv::Mat());
+    store->add_keyframe(run, stored_keyframe(1, sample(0), image));
+    store->add_keyframe(run, stored_keyframe(2, sample(1), cv::Mat()));
     store->finish_run(run, "converged", R"({"fx": 1070.25})", "pass", 0.123456789012345);
   }
   auto store = RecordStore::open(db);  // a second open reads what the first wrote
@@ -126,13 +156,13 @@ TEST(Records, ARunRoundTripsExactly) {
   EXPECT_TRUE(r.keyframes[1].image_png.empty());
 }
 
-TEST(Records, ARunCutShortStaysReadableAsRunning) {
-  const std::string db = (fresh("cut") / "records.sqlite").string();
+TEST_P(Store, ARunCutShortStaysReadableAsRunning) {
+  const std::string db = fresh_store("cut");
   const std::string run = new_run_id();
   {
     auto store = RecordStore::open(db);
     store->begin_run(identity(run));
-    store->add_keyframe(run, 1, sample(0), cv::Mat());
+    store->add_keyframe(run, stored_keyframe(1, sample(0), cv::Mat()));
   }  // no finish_run: the process was killed
   const RunRecord r = RecordStore::open(db)->get_run(run);
   EXPECT_EQ(r.summary.state, "running");
@@ -143,8 +173,8 @@ TEST(Records, ARunCutShortStaysReadableAsRunning) {
 // A run whose process died (kill -9) stays "running" until the next run on the host begins,
 // which marks it "killed" with a note; what it committed is kept. A run of a live process is
 // left alone.
-TEST(Records, ARunOfADeadProcessIsMarkedKilledByTheNextRun) {
-  const std::string db = (fresh("killed") / "records.sqlite").string();
+TEST_P(Store, ARunOfADeadProcessIsMarkedKilledByTheNextRun) {
+  const std::string db = fresh_store("killed");
   const std::string dead_run = new_run_id(), live_run = new_run_id(), next_run = new_run_id();
   RecordStore::open(db);  // the schema, before the fork
   const pid_t child = ::fork();
@@ -153,7 +183,7 @@ TEST(Records, ARunOfADeadProcessIsMarkedKilledByTheNextRun) {
     try {
       auto store = RecordStore::open(db);
       store->begin_run(identity(dead_run));
-      store->add_keyframe(dead_run, 1, sample(0), cv::Mat());
+      store->add_keyframe(dead_run, stored_keyframe(1, sample(0), cv::Mat()));
     } catch (...) {
       ::_exit(1);
     }
@@ -172,12 +202,14 @@ TEST(Records, ARunOfADeadProcessIsMarkedKilledByTheNextRun) {
   EXPECT_EQ(store->get_run(live_run).summary.state, "running");  // its process is this one
 }
 
-// Four connections creating one new file at once (a station's cameras): each opens, none is
+// Four connections setting up one new store at once (a station's cameras): each opens, none is
 // refused for the other's lock (CI saw "switch to WAL: database is locked" once; without the
-// retry this failed in round 30 of 300 here).
-TEST(Records, FourOpensOfOneNewFileAllSucceed) {
-  for (int round = 0; round < 300; ++round) {
-    const std::string db = (fresh("opens") / "records.sqlite").string();
+// retry this failed in round 30 of 300 here). PostgreSQL: each round a new database (slower to
+// make, so fewer rounds); the set-up is serialised by an advisory lock.
+TEST_P(Store, FourOpensOfANewStoreAllSucceed) {
+  const int rounds = postgresql() ? 15 : 300;
+  for (int round = 0; round < rounds; ++round) {
+    const std::string db = fresh_store("opens" + std::to_string(round % 3));
     std::vector<std::thread> threads;
     std::atomic<int> opened{0};
     std::vector<std::string> errors(4);
@@ -198,8 +230,8 @@ TEST(Records, FourOpensOfOneNewFileAllSucceed) {
   }
 }
 
-TEST(Records, TwoWritersOnOneFileLoseNothing) {
-  const std::string db = (fresh("two") / "records.sqlite").string();
+TEST_P(Store, TwoWritersOnOneStoreLoseNothing) {
+  const std::string db = fresh_store("two");
   RecordStore::open(db);  // the schema, once
   std::vector<std::string> ids(2);
   std::vector<std::thread> writers;
@@ -208,7 +240,8 @@ TEST(Records, TwoWritersOnOneFileLoseNothing) {
     writers.emplace_back([&, w] {
       auto store = RecordStore::open(db);  // each station its own connection
       store->begin_run(identity(ids[w]));
-      for (int k = 1; k <= 20; ++k) store->add_keyframe(ids[w], k, sample(k), cv::Mat());
+      for (int k = 1; k <= 20; ++k)
+        store->add_keyframe(ids[w], stored_keyframe(k, sample(k), cv::Mat()));
       store->finish_run(ids[w], "converged", "{}", "", std::nullopt);
     });
   }
@@ -221,35 +254,67 @@ TEST(Records, TwoWritersOnOneFileLoseNothing) {
   }
 }
 
-TEST(Records, BadStoresAndRunIdsAreRefusedNamingTheCause) {
+namespace {
+
+template <class F>
+void expect_error(F&& f, ErrorCode code, const std::string& part) {
+  try {
+    f();
+    ADD_FAILURE() << "no error, expected " << part;
+  } catch (const Error& e) {
+    EXPECT_EQ(e.code(), code) << e.what();
+    EXPECT_NE(std::string(e.what()).find(part), std::string::npos) << e.what();
+  }
+}
+
+}  // namespace
+
+TEST(Records, BadFilesAreRefusedNamingTheCause) {
   const fs::path dir = fresh("bad");
-  auto expect_error = [](auto&& f, ErrorCode code, const std::string& part) {
-    try {
-      f();
-      ADD_FAILURE() << "no error, expected " << part;
-    } catch (const Error& e) {
-      EXPECT_EQ(e.code(), code) << e.what();
-      EXPECT_NE(std::string(e.what()).find(part), std::string::npos) << e.what();
-    }
-  };
-  expect_error([&] { RecordStore::open((dir / "no/such/dir/r.sqlite").string()); },
-               ErrorCode::kIo, "no/such/dir/r.sqlite");
-  expect_error([&] { RecordStore::open("postgresql://127.0.0.1/records"); },
-               ErrorCode::kUnsupported, "not built yet");
+  expect_error([&] { RecordStore::open((dir / "no/such/dir/r.sqlite").string()); }, ErrorCode::kIo,
+               "no/such/dir/r.sqlite");
   {
     std::ofstream((dir / "text.sqlite").string()) << "not a database, just text\n";
   }
   expect_error([&] { RecordStore::open((dir / "text.sqlite").string()); }, ErrorCode::kIo,
                "text.sqlite");
-  {
-    sqlite3* other = nullptr;
-    ASSERT_EQ(sqlite3_open((dir / "other.sqlite").string().c_str(), &other), SQLITE_OK);
-    sqlite3_exec(other, "CREATE TABLE inventory (item TEXT)", nullptr, nullptr, nullptr);
-    sqlite3_close(other);
+}
+
+// A server that is not there, or refuses: the error names the store (without its password)
+// and the cause, within the connect timeout.
+TEST(Records, AnUnreachableServerIsRefusedNamingItWithoutThePassword) {
+  const int port = testing_pg::free_port();  // nothing listens there
+  const std::string url =
+      "postgresql://posecal:s3cret@127.0.0.1:" + std::to_string(port) + "/records";
+  try {
+    RecordStore::open(url);
+    ADD_FAILURE() << "opened " << url;
+  } catch (const Error& e) {
+    const std::string what = e.what();
+    EXPECT_EQ(e.code(), ErrorCode::kIo) << what;
+    EXPECT_NE(what.find("127.0.0.1:" + std::to_string(port)), std::string::npos) << what;
+    EXPECT_NE(what.find("connect"), std::string::npos) << what;
+    EXPECT_EQ(what.find("s3cret"), std::string::npos) << what;
   }
-  expect_error([&] { RecordStore::open((dir / "other.sqlite").string()); }, ErrorCode::kIo,
-               "no posecal_schema table");
-  const std::string db = (dir / "records.sqlite").string();
+  EXPECT_EQ(sql::redact_url("postgresql://u:pw@h:5/d?sslmode=require&password=x&a=b"),
+            "postgresql://u:***@h:5/d?sslmode=require&password=***&a=b");
+  EXPECT_EQ(sql::redact_url("postgresql://u@h/d"), "postgresql://u@h/d");
+}
+
+TEST_P(Store, BadStoresAndRunIdsAreRefusedNamingTheCause) {
+  // A database of something else.
+  const std::string other = fresh_store("other");
+  if (postgresql()) {
+    ASSERT_TRUE(server()->psql("other", "CREATE TABLE inventory (item TEXT)"));
+  } else {
+    sqlite3* raw = nullptr;
+    ASSERT_EQ(sqlite3_open(other.c_str(), &raw), SQLITE_OK);
+    sqlite3_exec(raw, "CREATE TABLE inventory (item TEXT)", nullptr, nullptr, nullptr);
+    sqlite3_close(raw);
+  }
+  expect_error([&] { RecordStore::open(other); }, ErrorCode::kIo, "no posecal_schema table");
+
+  const std::string db = fresh_store("records");
   {
     auto store = RecordStore::open(db);
     const std::string run = new_run_id();
@@ -257,12 +322,96 @@ TEST(Records, BadStoresAndRunIdsAreRefusedNamingTheCause) {
     expect_error([&] { store->begin_run(identity(run)); }, ErrorCode::kInvalidArgument,
                  "already recorded");
     expect_error([&] { store->get_run("ffffffff-0000"); }, ErrorCode::kNotFound, "no run");
+    store->begin_run(identity(run.substr(0, 4) + "-second"));
+    expect_error([&] { store->get_run(run.substr(0, 4)); }, ErrorCode::kInvalidArgument,
+                 "ambiguous");
   }
-  {
+  // A store written by a newer posecal.
+  const char* later = "INSERT INTO posecal_schema VALUES (7, 'later')";
+  if (postgresql()) {
+    ASSERT_TRUE(server()->psql("records", later));
+  } else {
     sqlite3* raw = nullptr;
     ASSERT_EQ(sqlite3_open(db.c_str(), &raw), SQLITE_OK);
-    sqlite3_exec(raw, "INSERT INTO posecal_schema VALUES (7, 'later')", nullptr, nullptr, nullptr);
+    sqlite3_exec(raw, later, nullptr, nullptr, nullptr);
     sqlite3_close(raw);
   }
   expect_error([&] { RecordStore::open(db); }, ErrorCode::kInvalidArgument, "schema version 7");
+}
+
+// A PostgreSQL server that goes away in the middle of a run (stopped at once, as a crash or a
+// network cut would) and comes back before the run finishes: the writer keeps the parts the
+// server could not take and writes them at the finish; the record is complete.
+TEST(RecordWriter, AServerThatGoesAwayMidRunLosesNothing) {
+  testing_pg::PgServer server;
+  ASSERT_TRUE(server.error().empty()) << server.error();
+  const std::string db = server.create_database("away");
+  const std::string run = new_run_id();
+  RecordWriter w(db, identity(run), "");
+  w.set_engine(cv::Size(1280, 720), {{"gain_db", "0"}});
+  w.add_keyframe(stored_keyframe(1, sample(0), cv::Mat()));
+  EXPECT_EQ(w.pending(), 0u);
+  EXPECT_EQ(w.note(), "");
+  server.stop();
+  w.add_keyframe(stored_keyframe(2, sample(1), cv::Mat()));
+  w.add_keyframe(stored_keyframe(3, sample(2), cv::Mat()));
+  EXPECT_EQ(w.pending(), 2u);
+  EXPECT_NE(w.note().find("away"), std::string::npos) << w.note();
+  ASSERT_TRUE(server.start());
+  w.finish("converged", R"({"fx": 1})", "pass", 0.25);
+  EXPECT_EQ(w.pending(), 0u) << w.note();
+  EXPECT_EQ(w.note(), "");
+  const RunRecord r = RecordStore::open(db)->get_run(run);
+  EXPECT_EQ(r.summary.state, "converged");
+  ASSERT_EQ(r.keyframes.size(), 3u);
+  for (int k = 0; k < 3; ++k)
+    EXPECT_EQ(keyframe_from_json(r.keyframes[k].record).estimate_after, sample(k).estimate_after);
+}
+
+// Still away at the finish: the run goes to the spool directory, and the next writer of the
+// same store (or replay_spool) writes it there once the server is back. A run whose store was
+// away from its very beginning is spooled and replayed whole.
+TEST(RecordWriter, ARunTheServerMissedIsSpooledAndReplayed) {
+  testing_pg::PgServer server;
+  ASSERT_TRUE(server.error().empty()) << server.error();
+  const std::string db = server.create_database("spool");
+  const fs::path spool = fresh("spool");
+  const std::string begun = new_run_id(), never = new_run_id();
+  {
+    RecordWriter w(db, identity(begun), spool.string());
+    w.add_keyframe(stored_keyframe(1, sample(0), cv::Mat()));
+    server.stop();
+    w.add_keyframe(stored_keyframe(2, sample(1), cv::Mat()));
+    w.finish("converged", "{}", "pass", 0.5);
+    EXPECT_NE(w.note().find("spooled"), std::string::npos) << w.note();
+    EXPECT_TRUE(fs::exists(w.spooled())) << w.spooled();
+  }
+  {
+    RecordWriter w(db, identity(never), spool.string());  // the server is still down
+    EXPECT_EQ(w.pending(), 1u);
+    w.set_engine(cv::Size(640, 480), {});
+    w.add_keyframe(stored_keyframe(1, sample(3), cv::Mat()));
+    w.finish("failed", "", "", std::nullopt);
+    EXPECT_FALSE(w.spooled().empty()) << w.note();
+  }
+  size_t files = 0;
+  for (const auto& e : fs::directory_iterator(spool)) files += e.path().extension() == ".sqlite";
+  EXPECT_EQ(files, 2u);
+  ASSERT_TRUE(server.start());
+  // The next run on this store replays the spool when it begins.
+  const std::string next = new_run_id();
+  RecordWriter w(db, identity(next), spool.string());
+  EXPECT_EQ(w.note(), "");
+  auto store = RecordStore::open(db);
+  const RunRecord a = store->get_run(begun);
+  EXPECT_EQ(a.summary.state, "converged");
+  EXPECT_EQ(a.keyframes.size(), 2u);
+  EXPECT_EQ(*a.summary.expected_error_px, 0.5);
+  const RunRecord b = store->get_run(never);
+  EXPECT_EQ(b.summary.state, "failed");
+  EXPECT_EQ(b.image_width, 640);
+  ASSERT_EQ(b.keyframes.size(), 1u);
+  EXPECT_EQ(keyframe_from_json(b.keyframes[0].record).estimate_after, sample(3).estimate_after);
+  EXPECT_TRUE(fs::is_empty(spool));
+  EXPECT_EQ(store->list_runs().size(), 3u);
 }

@@ -367,8 +367,8 @@ class Context(_Handle):
         jaccard_threshold, still_motion_px, constraint_factor, target_timeout_frames,
         pose_candidates, lock_settings, max_tilt_deg, fixed, convergence_measure,
         measured_convergence, candidate_score, view_candidates, view_must_serve_target,
-        board_timeout_s, accuracy_px, journal, journal_images, resume, spec, records, run_id,
-        station_id, operator_id, lens_id."""
+        board_timeout_s, accuracy_px, journal, journal_images, resume, spec, records, records_spool,
+        run_id, station_id, operator_id, lens_id."""
         return Session(self, uri, **config)
 
 
