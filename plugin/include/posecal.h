@@ -210,7 +210,7 @@ POSECAL_API posecal_status posecal_records_export(const char* location, const ch
  * atomically; an output that cannot be written is POSECAL_E_IO before any work. Returns
  * {"html", "pdf" (or null), "plots" (the figure ids), "pages" (or null), "notes" (what is not
  * shown and why)}; size NULL: no JSON. The files are written even when the buffer is too
- * small (a retry renders them again: pass 64 KiB). Takes about a second per ten keyframes.
+ * small (a retry renders them again: pass 64 KiB). Takes well under a second for ten keyframes.
  * POSECAL_E_STATE for a run of fewer than two keyframes; POSECAL_E_INVALID_ARGUMENT for both
  * or neither of a run and a result file, or a result file that is not a camera model. */
 POSECAL_API posecal_status posecal_records_report(const char* location, const char* run_id,
