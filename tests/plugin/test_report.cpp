@@ -3,6 +3,7 @@
 // every figure decoded by the browser; bad input fails naming the cause and writes nothing.
 #include <gtest/gtest.h>
 #include <sys/wait.h>
+#include <unistd.h>
 
 #include <array>
 #include <cstdio>
@@ -126,7 +127,8 @@ int pdf_pages(const std::string& path) {
 class CliReport : public testing::Test {
  protected:
   static void SetUpTestSuite() {
-    dir_ = (fs::path(testing::TempDir()) / "posecal_report").string();
+    // One directory per process: ctest runs each test in its own process, several at once.
+    dir_ = (fs::path(testing::TempDir()) / ("posecal_report_" + std::to_string(getpid()))).string();
     fs::remove_all(dir_);
     fs::create_directories(dir_);
     const Output r = cli(
@@ -139,6 +141,10 @@ class CliReport : public testing::Test {
     if (j.is_discarded()) return;
     for (const auto& c : j["cameras"])
       if (c["run_id"].is_string()) run_ids_.push_back(c["run_id"].get<std::string>());
+  }
+  static void TearDownTestSuite() {
+    // Kept for a look when something failed.
+    if (testing::UnitTest::GetInstance()->current_test_suite()->Passed()) fs::remove_all(dir_);
   }
   void SetUp() override {
     ASSERT_EQ(station_status_, 0) << station_out_;
@@ -181,6 +187,7 @@ TEST_F(CliReport, StationRunHasEveryPlotAndAPdf) {
   EXPECT_EQ(text.find("src=\"file:"), std::string::npos);
   // The table names the run, its camera and its keyframes.
   EXPECT_NE(text.find(run_ids_[0]), std::string::npos);
+  EXPECT_NE(text.find("<td>sim-6"), std::string::npos) << "the camera id";
   EXPECT_NE(text.find("<th>keyframes</th>"), std::string::npos);
   EXPECT_NE(text.find("<th>expected_error_px</th>"), std::string::npos);
   EXPECT_NE(text.find("<th>verdict</th>"), std::string::npos);
@@ -200,7 +207,7 @@ TEST_F(CliReport, OpensInHeadlessChromiumWithEveryPlot) {
   ASSERT_EQ(r.status, 0) << r.out;
   // Chromium runs as root in CI: --no-sandbox. Its own profile, so no other instance interferes.
   const std::string chromium =
-      "timeout 120 chromium --headless --no-sandbox --disable-gpu "
+      "timeout 120 chromium --headless --no-sandbox --disable-gpu --disable-dev-shm-usage "
       "--user-data-dir=" +
       dir_ + "/chromium-profile ";
   const Output dom = shell(chromium + "--dump-dom file://" + html, true);
