@@ -14,7 +14,8 @@ Command add_grab(CLI::App* app);
 Command add_features(CLI::App* app);
 Command add_board(CLI::App* app);
 Command add_list(CLI::App* app);
-Command add_records(CLI::App* app);  // list, show, resolve, export
+Command add_records(CLI::App* app);  // list, show, resolve, export, import
+Command add_report(CLI::App* app);   // the calibration report (HTML, PDF)
 
 // The text of `posecal version` and `posecal --version`.
 std::string version_text();

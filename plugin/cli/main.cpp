@@ -40,6 +40,7 @@ Commands add_commands(CLI::App* app) {
   commands["board"] = add_board(app);
   commands["list"] = add_list(app);
   commands["records"] = add_records(app);
+  commands["report"] = add_report(app);
   app->add_subcommand("version", "print the version and the ABI version");
   commands["version"] = [] {
     std::printf("%s\n", version_text().c_str());

@@ -196,6 +196,28 @@ POSECAL_API posecal_status posecal_records_export(const char* location, const ch
                                                   const char* path,
                                                   const char* format) POSECAL_NOEXCEPT;
 
+/* The calibration report (docs/c-api.md, "Reports"): self-contained HTML at html_path (every
+ * figure a PNG in a data: URI, <img id="plot-coverage|plot-residuals|plot-distortion|
+ * plot-expected-error|plot-sigma|plot-fleet">, a table of the run: id, camera, station,
+ * operator, times, versions, verdict and reasons, expected_error_px, keyframes) and, if pdf_path
+ * is not NULL or "", a PDF of a title page and one page per figure. Either a run (location and
+ * run_id, result_path NULL): its calibration re-solved from the stored keyframes, the coverage,
+ * the residuals, the distortion, the expected-error map, sigma of each intrinsic after each
+ * keyframe (the prefixes re-solved) and the verdict with the fleet position (the other units of
+ * the same camera model and lens id in the store, one per serial); or a result file
+ * (result_path, location and run_id NULL): the distortion and, if the file holds the
+ * covariance, the expected-error map. Both files are rendered first and then written
+ * atomically; an output that cannot be written is POSECAL_E_IO before any work. Returns
+ * {"html", "pdf" (or null), "plots" (the figure ids), "pages" (or null), "notes" (what is not
+ * shown and why)}; size NULL: no JSON. The files are written even when the buffer is too
+ * small (a retry renders them again: pass 64 KiB). Takes well under a second for ten keyframes.
+ * POSECAL_E_STATE for a run of fewer than two keyframes; POSECAL_E_INVALID_ARGUMENT for both
+ * or neither of a run and a result file, or a result file that is not a camera model. */
+POSECAL_API posecal_status posecal_records_report(const char* location, const char* run_id,
+                                                  const char* result_path, const char* html_path,
+                                                  const char* pdf_path, char* buf,
+                                                  size_t* size) POSECAL_NOEXCEPT;
+
 /* Records a session's journal (session key "journal") as a run: the spool for a session whose
  * record store was away (its "records_note" said why), or one recorded before records existed.
  * The camera, config and start time come from the journal, the keyframes (without images) and

@@ -7,6 +7,7 @@
 #include "json_report.hpp"
 #include "posecal.h"
 #include "records/record_store.hpp"
+#include "records_resolve.hpp"
 #include "select/engine.hpp"
 #include "session/journal.hpp"
 #include "session_config.hpp"
@@ -15,6 +16,8 @@ using namespace posecal;
 using Json = nlohmann::json;
 using abi::guarded;
 using abi::require;
+using abi::resolve;
+using abi::Resolved;
 
 namespace {
 
@@ -46,34 +49,6 @@ Json summary_json(const RunSummary& s) {
           {"expected_error_px", s.expected_error_px ? Json(*s.expected_error_px) : Json(nullptr)},
           {"keyframes", s.keyframes},
           {"note", s.note.empty() ? Json(nullptr) : Json(s.note)}};
-}
-
-// The run's calibration recomputed from its stored keyframes, as a journal's resume recomputes
-// it: the engine of the recorded config and image size, every keyframe restored in order.
-struct Resolved {
-  std::unique_ptr<CalibrationEngine> engine;
-  bool identical_to_last_keyframe = false;
-};
-
-Resolved resolve(const RunRecord& r) {
-  const std::string& run = r.summary.identity.run_id;
-  if (r.keyframes.size() < 2 || r.image_width <= 0 || r.image_height <= 0) {
-    throw Error(ErrorCode::kState, "run " + run + " has " + std::to_string(r.keyframes.size()) +
-                                       " keyframes: a calibration needs two");
-  }
-  const Json config = abi::parse_options(r.summary.identity.config.c_str(),
-                                         abi::session_config_keys(), "recorded session config");
-  const SessionOptions options = abi::session_options_from_json(config);
-  std::vector<KeyframeRecord> keyframes;
-  for (const StoredKeyframe& k : r.keyframes) keyframes.push_back(keyframe_from_json(k.record));
-  Resolved out;
-  out.engine = std::make_unique<CalibrationEngine>(cv::Size(r.image_width, r.image_height),
-                                                   options.engine);
-  out.identical_to_last_keyframe = out.engine->restore(keyframes);
-  if (!out.engine->result()) {
-    throw Error(ErrorCode::kDegenerate, "run " + run + ": its keyframes give no calibration");
-  }
-  return out;
 }
 
 RunRecord get_run(const char* location, const char* run_id) {

@@ -13,6 +13,7 @@
 #include <stdlib.h>
 #include <string.h>
 #include <time.h>
+#include <unistd.h>
 
 #include "posecal.h"
 
@@ -758,6 +759,24 @@ static void test_records(posecal_context* ctx) {
   EXPECT_STATUS(posecal_records_resolve(db, "misuse-1", buf, &size), POSECAL_E_STATE);
   EXPECT_MESSAGE("keyframes");
   EXPECT_STATUS(posecal_records_export(db, "misuse-1", model, NULL), POSECAL_E_STATE);
+  /* The report: an output path, a run or a result file (not both), a run with a calibration;
+   * nothing is written when it fails. */
+  char html[700];
+  snprintf(html, sizeof html, "%s", path_in("report.html"));
+  EXPECT_INVALID(posecal_records_report(db, "misuse-1", NULL, NULL, NULL, buf, &size));
+  EXPECT_INVALID(posecal_records_report(NULL, NULL, NULL, html, NULL, buf, &size));
+  EXPECT_INVALID(posecal_records_report(db, "misuse-1", model, html, NULL, buf, &size));
+  EXPECT_MESSAGE("not both");
+  EXPECT_STATUS(posecal_records_report(db, "misuse-1", NULL, html, NULL, buf, &size),
+                POSECAL_E_STATE);
+  EXPECT_MESSAGE("keyframes");
+  EXPECT_STATUS(
+      posecal_records_report(db, "misuse-1", NULL, path_in("none/r.html"), NULL, buf, &size),
+      POSECAL_E_IO);
+  EXPECT_MESSAGE("none");
+  CHECK(posecal_records_report(NULL, NULL, db, html, NULL, NULL, NULL) != POSECAL_OK);
+  EXPECT_MESSAGE("records.sqlite"); /* a record store is not a model file */
+  CHECK(access(html, F_OK) != 0);
   EXPECT_STATUS(posecal_records_list(path_in("empty"), buf, &size), POSECAL_E_IO); /* a directory */
   EXPECT_MESSAGE("empty");
   /* A PostgreSQL server that is not there (port 1 refuses): the error names the store. */

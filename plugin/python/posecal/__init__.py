@@ -101,6 +101,7 @@ __all__ = [
     "records_resolve",
     "records_export",
     "records_import",
+    "records_report",
 ]
 
 _lib = _native.lib
@@ -200,6 +201,19 @@ def records_import(db: PathArg, journal: PathArg, **options: Any) -> Dict[str, A
     journal_note."""
     d, j, o = _enc(db, "db"), _enc(journal, "journal"), _options(options)
     out: Dict[str, Any] = _fetch_json(lambda b, n: _lib.posecal_records_import(d, j, o, b, n))
+    return out
+
+
+def records_report(html: PathArg, db: Optional[PathArg] = None, run_id: Optional[str] = None,
+                   result: Optional[PathArg] = None, pdf: Optional[PathArg] = None) -> Dict[str, Any]:
+    """Writes the calibration report as self-contained HTML (every figure embedded) and, with
+    `pdf`, a PDF: of a recorded run (`db` and `run_id`: coverage, residuals, distortion,
+    expected-error map, sigma after each keyframe, verdict and fleet position) or of a result
+    file (`result`: distortion and expected-error map). Returns html, pdf, plots (the figure
+    ids), pages and notes (posecal.h, posecal_records_report)."""
+    d, r, f = _enc(db, "db"), _enc(run_id, "run_id"), _enc(result, "result")
+    h, p = _enc(html, "html"), _enc(pdf, "pdf")
+    out: Dict[str, Any] = _fetch_json(lambda b, n: _lib.posecal_records_report(d, r, f, h, p, b, n))
     return out
 
 

@@ -128,6 +128,7 @@ _PROTOTYPES = {
     "posecal_records_resolve": (_status, [_s, _s, _c.c_char_p, _size_p]),
     "posecal_records_export": (_status, [_s, _s, _s, _s]),
     "posecal_records_import": (_status, [_s, _s, _s, _c.c_char_p, _size_p]),
+    "posecal_records_report": (_status, [_s, _s, _s, _s, _s, _c.c_char_p, _size_p]),
 }
 
 for _name, (_restype, _argtypes) in _PROTOTYPES.items():

@@ -87,6 +87,16 @@ class Calibration(unittest.TestCase):
         self.assertTrue(os.path.getsize(yml) > 0)
         with self.assertRaises(posecal.NotFoundError):
             posecal.records_show(db, "no-such-run")
+        html = os.path.join(self.tmp.name, "report.html")
+        report = posecal.records_report(html, db=db, run_id=run_id,
+                                        pdf=os.path.join(self.tmp.name, "report.pdf"))
+        self.assertEqual(report["plots"], ["coverage", "residuals", "distortion",
+                                           "expected-error", "sigma", "fleet"])
+        self.assertEqual(report["pages"], 7)
+        with open(html, encoding="utf-8") as f:
+            self.assertEqual(f.read().count('src="data:image/png;base64,'), 6)
+        with self.assertRaises(posecal.InvalidArgumentError):
+            posecal.records_report(html, db=db, run_id=run_id, result=yml)
         journal = os.path.join(self.tmp.name, "s8.journal")
         with self.ctx.open("sim://?seed=8", journal=journal) as s:
             list(s)
