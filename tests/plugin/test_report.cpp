@@ -266,8 +266,9 @@ TEST_F(CliReport, BadInputFailsNamingTheCauseAndWritesNothing) {
     id.run_id = posecal::new_run_id();
     store->begin_run(id);
     store->set_engine(id.run_id, cv::Size(full.image_width, full.image_height), {});
-    store->add_keyframe(id.run_id, 1, posecal::keyframe_from_json(full.keyframes[0].record),
-                        cv::Mat());
+    posecal::StoredKeyframe first = full.keyframes[0];
+    first.image_png.clear();
+    store->add_keyframe(id.run_id, first);
     store->finish_run(id.run_id, "interrupted", "", "", std::nullopt);
     expect_fails(id.run_id + " --db " + db() + " --out " + out, "1 keyframes");
   }
