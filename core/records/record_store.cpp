@@ -306,6 +306,22 @@ std::vector<RunSummary> RecordStore::list_runs() const {
   return out;
 }
 
+std::vector<RecordStore::FleetRun> RecordStore::fleet_runs(const std::string& camera_model,
+                                                           const std::string& lens_id) const {
+  sql::Connection& c = *db_->c;
+  std::vector<FleetRun> out;
+  for (const sql::Row& row :
+       c.query(std::string("SELECT r.run_id, r.camera_serial, r.started, r.result FROM runs r "
+                           "WHERE r.camera_model = ? AND r.lens_id = ? AND r.result <> '' AND "
+                           "(r.verdict = 'pass' OR (r.verdict = '' AND r.state = 'converged')) "
+                           "ORDER BY r.started DESC, ") +
+                   c.dialect().run_order + " DESC",
+               {camera_model, lens_id}, "read the fleet")) {
+    out.push_back({row[0].text(), row[1].text(), row[2].text(), row[3].text()});
+  }
+  return out;
+}
+
 RunRecord RecordStore::get_run(const std::string& run_id) const {
   if (run_id.empty()) throw Error(ErrorCode::kInvalidArgument, "records: an empty run id");
   sql::Connection& c = *db_->c;

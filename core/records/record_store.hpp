@@ -95,6 +95,14 @@ class RecordStore {
 
   // Newest first.
   std::vector<RunSummary> list_runs() const;
+
+  // The passed runs of one camera model and lens id, newest first, without their keyframes:
+  // those with the verdict "pass", and those converged without a specification (no verdict).
+  struct FleetRun {
+    std::string run_id, serial, started, result;
+  };
+  std::vector<FleetRun> fleet_runs(const std::string& camera_model,
+                                   const std::string& lens_id) const;
   // Error(kNotFound) naming the run id if there is none. A unique prefix of a run id is
   // accepted (as git accepts an abbreviated commit); an ambiguous one is Error(kInvalidArgument).
   RunRecord get_run(const std::string& run_id) const;

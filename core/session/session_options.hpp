@@ -20,7 +20,9 @@ struct SessionOptions {
   bool resume = true;         // resume an existing journal (false: set it aside, start afresh)
   std::string spec;           // a quality specification's path ("" = none; plugin/src/quality_gate)
   std::string records;        // the calibration record store ("" = none; records/record_store)
-  std::string records_spool;  // where a run the store was away for waits (records/record_writer)
+  std::string records_spool;
+  double fleet_outlier_probability = 0.001;  // records/fleet.hpp  // where a run the store was away
+                                             // for waits (records/record_writer)
   std::string run_id;         // the record's run id ("" = a new UUID)
   std::string station_id, operator_id, lens_id;  // recorded with the run
   bool is_valid(std::string* error) const { return engine.is_valid(error); }

@@ -364,7 +364,10 @@ typedef struct posecal_image {
  *   not stop the calibration: the parts it could not take are written when it is back, at the
  *   next keyframe or the finish, and "records_note" says what is behind), "records_spool"
  *   (unset; a directory: a run the store was still away for at its finish is kept there and
- *   written into the store when a later run opens it), "run_id" (unset: a
+ *   written into the store when a later run opens it), "fleet_outlier_probability" (0.001; with
+ *   "records", the finished result's "fleet": its position among the passed units of the same
+ *   camera model and lens id in the store, flagged "outlier" beyond the bound that a normal unit
+ *   exceeds with this probability; docs/c-api.md, "Fleet outliers"), "run_id" (unset: a
  *   new random UUID; a run id already in the store is not recorded again), "station_id",
  *   "operator_id", "lens_id" (unset; recorded with the run). docs/c-api.md, "Records".
  * An unknown key is POSECAL_E_INVALID_ARGUMENT. Opening a camera may block up to ~3 s. The

@@ -11,6 +11,7 @@
 #include <ctime>
 #include <memory>
 #include <opencv2/imgproc.hpp>
+#include <set>
 
 #include "abi_common.hpp"
 #include "common/clock.hpp"
@@ -20,6 +21,7 @@
 #include "lens/lens_models.hpp"
 #include "posecal.h"
 #include "quality_gate.hpp"
+#include "records/fleet.hpp"
 #include "records/record_store.hpp"
 #include "records/record_writer.hpp"
 #include "records/sql.hpp"
@@ -54,6 +56,10 @@ struct posecal_session {
   // spools them at the finish, with "records_spool"); records_note says what happened.
   std::unique_ptr<RecordWriter> records;
   std::string records_location, run_id;
+  // The fleet position of the finished result (records/fleet.hpp), computed once.
+  std::string records_url, lens_id;
+  double fleet_alpha = 0.001;
+  std::optional<Json> fleet;
   bool record_finished = false;
   // sim:// only: the fixed test set, rendered once, and the evaluation of the last result.
   std::vector<Observation> test_set;
@@ -306,6 +312,46 @@ const CalibrationResult& require_result(posecal_session* s) {
   return *eng->result();
 }
 
+// Where the result lies among the passed units of the same camera model and lens id in the
+// session's record store (records/fleet.hpp): {"units", "distance", "threshold",
+// "probability", "outlier", "deviations": [{"param", "z"}, ...] largest first, "note"}.
+// Too few units or a store that cannot be read give "outlier": null and the note.
+Json fleet_json(posecal_session* s, const CalibrationResult& r) {
+  Json j = {{"units", 0}, {"outlier", nullptr}, {"probability", s->fleet_alpha}};
+  try {
+    const std::vector<std::string>& names = r.model.param_names();
+    std::vector<FleetUnit> units;
+    std::set<std::string> serials;
+    for (const RecordStore::FleetRun& run :
+         RecordStore::open(s->records_url)->fleet_runs(s->camera.model, s->lens_id)) {
+      if (run.run_id == s->run_id || !serials.insert(run.serial).second) continue;
+      const Json res = Json::parse(run.result, nullptr, false);
+      if (!res.is_object() || res.value("model", "") != lens_model_name(r.model.lens_model()))
+        continue;
+      FleetUnit u{run.run_id, run.serial, {}};
+      for (const std::string& n : names) {
+        if (!res.contains(n) || !res[n].is_number()) break;
+        u.values.push_back(res[n].get<double>());
+      }
+      if (u.values.size() == names.size()) units.push_back(std::move(u));
+    }
+    j["units"] = units.size();
+    const FleetStatistics fleet = fleet_statistics(names, units);
+    const FleetPosition pos = fleet_position(fleet, names, r.model.params(), s->fleet_alpha);
+    j["distance"] = abi::number(pos.distance);
+    j["threshold"] = abi::number(pos.threshold);
+    j["outlier"] = pos.outlier;
+    Json dev = Json::array();
+    for (const auto& [name, z] : pos.deviations)
+      dev.push_back({{"param", name}, {"z", abi::number(z)}});
+    j["deviations"] = dev;
+    j["note"] = nullptr;
+  } catch (const std::exception& e) {
+    j["note"] = e.what();
+  }
+  return j;
+}
+
 // The result JSON (posecal_session_result; the record's result): Error(kState) before a
 // calibration exists.
 Json result_json(posecal_session* session) {
@@ -349,6 +395,10 @@ Json result_json(posecal_session* session) {
   }
   if (session->spec) j.update(abi::quality_verdict(*session->spec, j, eng.keyframes(), seconds));
   records_json(session, &j);
+  if (!session->records_url.empty() && (session->session->finished() || session->interrupted)) {
+    if (!session->fleet) session->fleet = fleet_json(session, r);
+    j["fleet"] = *session->fleet;
+  }
   return j;
 }
 
@@ -400,6 +450,9 @@ namespace {
 // calibration: the session goes on unrecorded and says why (records_note).
 void open_record(posecal_session* s, const SessionOptions& o, const Json& config) {
   s->records_location = sql::redact_url(o.records);
+  s->records_url = o.records;
+  s->lens_id = o.lens_id;
+  s->fleet_alpha = o.fleet_outlier_probability;
   s->run_id = o.run_id.empty() ? new_run_id() : o.run_id;
   RunIdentity id;
   id.run_id = s->run_id;
@@ -483,8 +536,9 @@ POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char
       // The config a journal is resumed with must be the one it was recorded with, but for
       // the journal's own keys.
       Json recorded = c;
-      for (const char* k : {"journal", "journal_images", "resume", "spec", "records",
-                            "records_spool", "run_id", "station_id", "operator_id", "lens_id"})
+      for (const char* k :
+           {"journal", "journal_images", "resume", "spec", "records", "records_spool",
+            "fleet_outlier_probability", "run_id", "station_id", "operator_id", "lens_id"})
         recorded.erase(k);
       s->session->open_journal(so_config.journal, abi::to_text(recorded), so_config.journal_images,
                                so_config.resume);

@@ -590,6 +590,11 @@ void check_station_of_four(const std::string& dir, const std::string& records) {
     const auto result = nlohmann::json::parse(rec.result);
     EXPECT_EQ(result["keyframes"], c["keyframes"]);
     EXPECT_EQ(result["run_id"], c["run_id"]);
+    // The fleet position: three other units of the model are too few for nine parameters.
+    ASSERT_TRUE(result.contains("fleet")) << rec.result;
+    EXPECT_TRUE(result["fleet"]["outlier"].is_null()) << result["fleet"].dump();
+    EXPECT_NE(result["fleet"]["note"].get<std::string>().find("at least 12"), std::string::npos)
+        << result["fleet"].dump();
     // records resolve: the calibration again from the stored detections, bit for bit.
     const std::string run_id = c["run_id"].get<std::string>();
     const CliRun rr = run("records resolve " + run_id + " --db '" + db + "' --json", true);

@@ -16,6 +16,7 @@
 
 #include "common/error.hpp"
 #include "pg_server.hpp"
+#include "records/fleet.hpp"
 #include "records/record_store.hpp"
 #include "records/record_writer.hpp"
 #include "records/sql.hpp"
@@ -414,4 +415,75 @@ TEST(RecordWriter, ARunTheServerMissedIsSpooledAndReplayed) {
   EXPECT_EQ(keyframe_from_json(b.keyframes[0].record).estimate_after, sample(3).estimate_after);
   EXPECT_TRUE(fs::is_empty(spool));
   EXPECT_EQ(store->list_runs().size(), 3u);
+}
+
+// The F quantile against values that are exact (d1 = d2 = 2: F = q / (1 - q); d1 = d2 = 1 at
+// q = 0.5: 1) and tabulated ones.
+TEST(Fleet, FQuantileMatchesTables) {
+  EXPECT_NEAR(f_quantile(0.975, 2, 2), 39.0, 1e-8);
+  EXPECT_NEAR(f_quantile(0.5, 1, 1), 1.0, 1e-9);
+  EXPECT_NEAR(f_quantile(0.95, 1, 1), 161.4476, 1e-3);
+  EXPECT_NEAR(f_quantile(0.95, 5, 10), 3.3258, 1e-3);
+  EXPECT_NEAR(f_quantile(0.99, 10, 30), 2.9791, 1e-3);
+  EXPECT_THROW(f_quantile(1.0, 2, 2), Error);
+}
+
+namespace {
+
+// Units of a normal population around the C525's intrinsics (fx, fy, cx, cy, k1..k3, p1, p2
+// order is irrelevant here): correlated fx and fy, independent others.
+std::vector<double> draw_unit(cv::RNG& rng) {
+  const double f = 1070 * (1 + 0.01 * rng.gaussian(1));
+  return {f * (1 + 0.001 * rng.gaussian(1)),
+          f,
+          640 + 6 * rng.gaussian(1),
+          360 + 6 * rng.gaussian(1),
+          0.10 + 0.01 * rng.gaussian(1),
+          -0.2 + 0.03 * rng.gaussian(1),
+          0.001 * rng.gaussian(1),
+          0.001 * rng.gaussian(1),
+          0.1 * rng.gaussian(1)};
+}
+
+const std::vector<std::string> kNames = {"fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3"};
+
+}  // namespace
+
+// The bound's promise: a normal unit is flagged with probability alpha, whatever the fleet's
+// size. 400 fleets of 30 units, 50 new units each, at alpha 0.05: 20,000 tries.
+TEST(Fleet, NormalUnitsAreFlaggedAtTheStatedRate) {
+  cv::RNG rng(7);
+  int flagged = 0, tries = 0;
+  for (int f = 0; f < 400; ++f) {
+    std::vector<FleetUnit> units;
+    for (int i = 0; i < 30; ++i) units.push_back({std::to_string(i), "", draw_unit(rng)});
+    const FleetStatistics fleet = fleet_statistics(kNames, units);
+    for (int i = 0; i < 50; ++i, ++tries)
+      flagged += fleet_position(fleet, kNames, draw_unit(rng), 0.05).outlier;
+  }
+  const double rate = static_cast<double>(flagged) / tries;
+  EXPECT_NEAR(rate, 0.05, 0.006) << flagged << " of " << tries;  // ~4 standard errors
+}
+
+TEST(Fleet, AShiftedUnitIsFlaggedNamingTheParameter) {
+  cv::RNG rng(11);
+  std::vector<FleetUnit> units;
+  for (int i = 0; i < 30; ++i) units.push_back({std::to_string(i), "", draw_unit(rng)});
+  const FleetStatistics fleet = fleet_statistics(kNames, units);
+  std::vector<double> unit = draw_unit(rng);
+  // cx 10 standard deviations of the fleet's cx off (60 px here). Whether a 3% shift (19 px)
+  // is flagged depends on the fleet's own spread of cx: with this fleet's 6 px it is 3.2 sigma,
+  // below the nine-parameter bound at alpha 0.001 (d > ~8.1); the fleet benchmark measures it.
+  unit[2] += 10 * 6.0;
+  FleetPosition pos = fleet_position(fleet, kNames, unit, 0.001);
+  EXPECT_TRUE(pos.outlier) << pos.distance << " vs " << pos.threshold;
+  EXPECT_EQ(pos.deviations[0].first, "cx");
+  unit = draw_unit(rng);
+  unit[4] = -unit[4];  // k1 of the wrong sign
+  pos = fleet_position(fleet, kNames, unit, 0.001);
+  EXPECT_TRUE(pos.outlier);
+  EXPECT_EQ(pos.deviations[0].first, "k1");
+  // Too few units for nine parameters: refused, naming the counts.
+  units.resize(11);
+  EXPECT_THROW(fleet_statistics(kNames, units), Error);
 }

@@ -1,0 +1,56 @@
+// The fleet: what the passed calibrations of one camera model and lens id say about the next
+// unit (issue 15, item 4). This file holds the outlier test; the fleet prior is not built yet.
+//
+// Given n earlier units' intrinsics x_1..x_n (one run per serial) with sample mean m and sample
+// covariance S, a new unit x of the same population is an outlier when
+//   d^2 = (x - m)^T S^-1 (x - m)  >  (n + 1) / n * p (n - 1) / (n - p) * F^-1(1 - alpha; p, n - p),
+// the exact prediction bound for a normal population whose mean and covariance are estimated
+// from the n units (Hotelling's T^2 of one new observation): a normal unit is flagged with
+// probability alpha, whatever n. p counts the parameters that vary in the fleet. The
+// parameters responsible are those whose own standardised deviation (x_i - m_i) / sqrt(S_ii)
+// is largest (docs/math.md, "Fleet outliers").
+#pragma once
+
+#include <string>
+#include <utility>
+#include <vector>
+
+namespace posecal {
+
+struct FleetUnit {
+  std::string run_id, serial;
+  std::vector<double> values;  // by FleetStatistics::names
+};
+
+struct FleetStatistics {
+  std::vector<std::string> names;  // the parameters that vary in the fleet
+  int units = 0;
+  std::vector<double> mean;
+  std::vector<double> covariance;  // row-major, names.size()^2
+};
+
+// The statistics of `units` (values ordered as `names`; a parameter constant over the fleet,
+// e.g. a fixed one, is dropped). Error(kDegenerate) naming the counts when there are fewer than
+// p + 3 units or the covariance is singular.
+FleetStatistics fleet_statistics(const std::vector<std::string>& names,
+                                 const std::vector<FleetUnit>& units);
+
+struct FleetPosition {
+  int units = 0;
+  double distance = 0;   // Mahalanobis distance d
+  double threshold = 0;  // d above which the unit is flagged
+  double alpha = 0;      // the probability that a normal unit is flagged
+  bool outlier = false;
+  // Every parameter with its standardised deviation, largest |z| first.
+  std::vector<std::pair<std::string, double>> deviations;
+};
+
+// Where a unit with intrinsics `values` (ordered as `names`, which must hold every name of
+// `fleet`) lies in the fleet.
+FleetPosition fleet_position(const FleetStatistics& fleet, const std::vector<std::string>& names,
+                             const std::vector<double>& values, double alpha);
+
+// The F distribution's quantile: F^-1(q; d1, d2), for 0 < q < 1.
+double f_quantile(double q, double d1, double d2);
+
+}  // namespace posecal
