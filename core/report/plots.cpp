@@ -645,7 +645,7 @@ void draw_sigma(cairo_t* cr, const std::vector<std::string>& names, const std::v
   }
 }
 
-void draw_fleet(cairo_t* cr, const FleetPosition& f) {
+void draw_fleet(cairo_t* cr, const FleetStrips& f) {
   white_background(cr);
   figure_title(cr, "Verdict and fleet position",
                "the quality gate's verdict, and this unit's intrinsics among " + f.group);
@@ -678,6 +678,13 @@ void draw_fleet(cairo_t* cr, const FleetPosition& f) {
       }
       if (shown > 6) break;
       text(cr, 30, y, line, 13);
+      y += 20;
+    }
+  }
+  if (!f.position.empty()) {
+    y += 6;
+    for (const std::string& line : wrap(cr, f.position, 13, 930)) {
+      text(cr, 30, y, line, 13, Align::kLeft, true);
       y += 20;
     }
   }
@@ -791,7 +798,7 @@ Figure sigma_figure(const std::vector<std::string>& names, const std::vector<int
           }};
 }
 
-Figure fleet_figure(const FleetPosition& fleet) {
+Figure fleet_figure(const FleetStrips& fleet) {
   return {"fleet", "Verdict and position in the fleet",
           [fleet](_cairo* cr) { draw_fleet(cr, fleet); }};
 }

@@ -62,15 +62,18 @@ Figure sigma_figure(const std::vector<std::string>& names, const std::vector<int
 // The verdict with its reasons, and where this unit's intrinsics lie among other units of the
 // same camera model and lens: one strip per parameter from the lowest to the highest value of
 // all units, the others grey, this one highlighted ("no other units" when `others` is empty).
-struct FleetPosition {
+struct FleetStrips {
   std::string verdict;               // "pass", "fail" or "" (no quality specification)
   std::vector<std::string> reasons;  // why it failed
   std::string group;                 // e.g. "camera model C525, lens id 3.6mm"
   std::vector<std::string> names;
   std::vector<double> unit;                 // this unit's intrinsics (names' order)
   std::vector<std::vector<double>> others;  // each other unit's
+  // The outlier test's line (records/fleet.hpp: distance, bound, parameters responsible), or
+  // why there is none; "" to leave it out.
+  std::string position;
 };
-Figure fleet_figure(const FleetPosition& fleet);
+Figure fleet_figure(const FleetStrips& fleet);
 
 // The figure as PNG bytes (cairo's image surface and PNG writer). Throws Error(kInternal) naming
 // cairo's status if cairo fails.

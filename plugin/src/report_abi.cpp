@@ -39,6 +39,38 @@ std::string text_of(const Json& j, const char* key) {
 
 std::string or_dash(const std::string& s) { return s.empty() ? "-" : s; }
 
+// The run's fleet outlier test as one line (the result's "fleet", records/fleet.hpp); "" if the
+// run had none (no records when it ran, or a result from before the test existed).
+std::string fleet_position_text(const Json& result) {
+  if (!result.is_object() || !result.contains("fleet") || !result["fleet"].is_object()) return "";
+  const Json& f = result["fleet"];
+  const auto num = [&](const char* k) {
+    return f.contains(k) && f[k].is_number() ? f[k].get<double>() : std::nan("");
+  };
+  if (!f.contains("outlier") || !f["outlier"].is_boolean()) {
+    return "no fleet test: " + (f.contains("note") && f["note"].is_string()
+                                    ? f["note"].get<std::string>()
+                                    : std::string("no note"));
+  }
+  char buf[160];
+  std::snprintf(buf, sizeof buf, "Mahalanobis distance %.2f, bound %.2f (%d units, alpha %g)",
+                num("distance"), num("threshold"), static_cast<int>(num("units")),
+                num("probability"));
+  std::string out =
+      std::string(f["outlier"].get<bool>() ? "OUTLIER: " : "within the fleet: ") + buf;
+  if (f.contains("deviations") && f["deviations"].is_array() && !f["deviations"].empty()) {
+    out += "; largest deviations";
+    int shown = 0;
+    for (const Json& d : f["deviations"]) {
+      if (shown++ == 3 || !d.is_object() || !d.contains("z") || !d["z"].is_number()) break;
+      std::snprintf(buf, sizeof buf, " %s z %+.1f", d.value("param", "?").c_str(),
+                    d["z"].get<double>());
+      out += buf;
+    }
+  }
+  return out;
+}
+
 std::string number_text(double v, const char* format = "%.4f") {
   char buf[64];
   std::snprintf(buf, sizeof buf, format, v);
@@ -134,7 +166,7 @@ Report report_of_run(const std::string& location, const std::string& run_id) {
   }
 
   const Json stored = Json::parse(r.result.empty() ? "null" : r.result, nullptr, false);
-  FleetPosition fleet;
+  FleetStrips fleet;
   fleet.verdict = r.summary.verdict.empty() ? text_of(stored, "verdict") : r.summary.verdict;
   if (stored.is_object() && stored.contains("verdict_reasons") &&
       stored["verdict_reasons"].is_array()) {
@@ -145,21 +177,19 @@ Report report_of_run(const std::string& location, const std::string& run_id) {
                 ", lens id " + (id.lens_id.empty() ? "(none)" : id.lens_id);
   fleet.names = model.param_names();
   fleet.unit = model.params();
-  // The other units: runs of the same camera model and lens id with a calibration of the same
-  // lens model (their stored result's intrinsics), one per camera serial (its newest run) where
-  // the serial is known, so a unit calibrated twice counts once.
+  // The other units: the passed runs of the same camera model and lens id (the fleet of
+  // records/fleet.hpp, read without their frames) with a calibration of the same lens model,
+  // one per camera serial (its newest run) where the serial is known, so a unit calibrated
+  // twice counts once.
   std::set<std::string> serials_seen;
   if (!id.camera_serial.empty()) serials_seen.insert(id.camera_serial);
-  for (const RunSummary& s : store->list_runs()) {
-    const RunIdentity& o = s.identity;
-    if (o.run_id == id.run_id || o.camera_model != id.camera_model || o.lens_id != id.lens_id)
-      continue;
-    if (!o.camera_serial.empty() && !serials_seen.insert(o.camera_serial).second) continue;
-    const RunRecord other = store->get_run(o.run_id);
-    const std::vector<double> v = intrinsics_of(
-        Json::parse(other.result.empty() ? "null" : other.result, nullptr, false), fleet.names);
+  for (const RecordStore::FleetRun& o : store->fleet_runs(id.camera_model, id.lens_id)) {
+    if (o.run_id == id.run_id) continue;
+    if (!o.serial.empty() && !serials_seen.insert(o.serial).second) continue;
+    const std::vector<double> v = intrinsics_of(Json::parse(o.result, nullptr, false), fleet.names);
     if (!v.empty()) fleet.others.push_back(v);
   }
+  fleet.position = fleet_position_text(stored);
 
   Report rep;
   rep.title = "posecal calibration report: " + or_dash(id.camera_id);
@@ -182,6 +212,7 @@ Report report_of_run(const std::string& location, const std::string& run_id) {
       {"state", or_dash(r.summary.state)},
       {"verdict", fleet.verdict.empty() ? "- (no quality specification)" : fleet.verdict},
       {"verdict reasons", or_dash(reasons)},
+      {"fleet position", or_dash(fleet.position)},
       {"expected_error_px", exp},
       {"keyframes", std::to_string(r.keyframes.size())},
       {"image", std::to_string(r.image_width) + " x " + std::to_string(r.image_height) + " px"},

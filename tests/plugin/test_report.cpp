@@ -191,6 +191,9 @@ TEST_F(CliReport, StationRunHasEveryPlotAndAPdf) {
   EXPECT_NE(text.find("<th>keyframes</th>"), std::string::npos);
   EXPECT_NE(text.find("<th>expected_error_px</th>"), std::string::npos);
   EXPECT_NE(text.find("<th>verdict</th>"), std::string::npos);
+  // The fleet outlier test's line: at most one other unit, too few for nine parameters.
+  EXPECT_NE(text.find("<th>fleet position</th><td>no fleet test: fleet: "), std::string::npos);
+  EXPECT_NE(text.find("the outlier test needs at least 12"), std::string::npos);
   EXPECT_EQ(pdf_pages(pdf), 7) << "title page + 6 figures";
 }
 
