@@ -189,7 +189,7 @@ void calibrate_one(StationShared* shared, StationJob* job, Clock::time_point t0)
   out["resumed_keyframes"] = result.value("resumed_keyframes", 0);
   out["resume_identical"] = result.value("resume_identical", Json());
   for (const char* k : {"run_id", "records", "records_note"}) out[k] = result.value(k, Json());
-  for (const char* k : {"verdict", "verdict_reasons", "spec"})
+  for (const char* k : {"verdict", "verdict_reasons", "spec", "fleet"})
     if (result.contains(k)) out[k] = result[k];
   out["file"] = file;
   out["error"] = nullptr;
@@ -243,6 +243,18 @@ void print_station_text(const Json& sum, const std::string& sum_path) {
       std::printf("%-40s quality spec: %s%s\n", "", o.value("verdict", "") == "pass" ? "PASS" : "FAIL",
                   reasons.c_str());
     }
+    // The fleet outlier test, where it could be made (enough passed units in the records).
+    const Json fleet = o.value("fleet", Json());
+    if (fleet.is_object() && fleet.contains("outlier") && fleet["outlier"].is_boolean() &&
+        fleet["outlier"].get<bool>()) {
+      const Json dev = fleet.value("deviations", Json::array());
+      std::printf("%-40s FLEET OUTLIER: distance %.2f over %.2f (%d units)%s\n", "",
+                  num_or(fleet, "distance", -1), num_or(fleet, "threshold", -1),
+                  fleet.value("units", 0),
+                  dev.empty() || !dev[0].is_object()
+                      ? ""
+                      : (", most off: " + dev[0].value("param", std::string("?"))).c_str());
+    }
   }
   std::printf("%d of %d cameras converged in %.1f s%s; summary in %s\n",
               sum["converged"].get<int>(), sum["total"].get<int>(),
@@ -280,7 +292,7 @@ Json run_cameras(const StationOptions& o, const std::vector<std::string>& uris, 
     for (auto& t : threads) t.join();
   }
   Json cams = Json::array();
-  int converged = 0, interrupted = 0, passed = 0, judged = 0;
+  int converged = 0, interrupted = 0, passed = 0, judged = 0, outliers = 0;
   *exit = kOk;
   for (const auto& j : jobs) {
     cams.push_back(j.outcome);
@@ -291,12 +303,19 @@ Json run_cameras(const StationOptions& o, const std::vector<std::string>& uris, 
     if (j.exit == kSpecFailed && *exit == kOk) *exit = kSpecFailed;
     if (j.outcome.value("verdict", "") == "pass") ++passed;
     if (j.outcome.contains("verdict")) ++judged;
+    const Json fleet = j.outcome.value("fleet", Json());
+    if (fleet.is_object() && fleet.value("outlier", Json()) == Json(true)) ++outliers;
   }
-  return {{"cameras", cams},        {"total", jobs.size()},
-          {"converged", converged}, {"all_converged", converged == static_cast<int>(jobs.size())},
-          {"interrupted", interrupted}, {"out_dir", o.out_dir},
+  return {{"cameras", cams},
+          {"total", jobs.size()},
+          {"converged", converged},
+          {"all_converged", converged == static_cast<int>(jobs.size())},
+          {"interrupted", interrupted},
+          {"out_dir", o.out_dir},
           // With a quality spec: the cameras whose result passed it (null without one).
           {"passed", judged > 0 ? Json(passed) : Json(nullptr)},
+          // Cameras flagged by the fleet outlier test (records/fleet.hpp; each camera's "fleet").
+          {"fleet_outliers", outliers},
           {"wall_ms", ms_since(t0)}};
 }
 

@@ -571,6 +571,11 @@ void check_station_of_four(const std::string& dir, const std::string& records) {
   std::ifstream summary(dir + "/summary.json");
   ASSERT_TRUE(summary.good());
   EXPECT_EQ(nlohmann::json::parse(summary)["converged"], 4);
+  EXPECT_EQ(j["fleet_outliers"], 0);
+  for (const auto& c : j["cameras"]) {
+    ASSERT_TRUE(c.contains("fleet")) << c.dump();
+    EXPECT_TRUE(c["fleet"]["outlier"].is_null()) << c.dump();  // too few units yet
+  }
   // Every camera's run is recorded (four writers on one store): complete, converged, its
   // keyframes with their detections and frames.
   auto store = posecal::RecordStore::open(db);
