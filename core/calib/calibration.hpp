@@ -24,6 +24,21 @@ struct Observation {
   static Observation from(const Detection& d) { return {d.ids, d.image_points, d.board_points}; }
 };
 
+// A Gaussian prior on the intrinsics (docs/math.md, "The fleet prior"): before any view, the
+// parameters `names` are distributed as N(mean, covariance), e.g. the passed units of a
+// production line (records/fleet.hpp). calibrate() then minimises
+//   sum |p - pi(P)|^2 + noise_px^2 (x - mean)^T covariance^-1 (x - mean),
+// the negative log posterior of corners with noise noise_px (the MAP estimate), starts from the
+// mean when it has no warm start, and its covariance is the posterior's. Every free intrinsic
+// must be among `names`.
+struct IntrinsicsPrior {
+  std::vector<double> mean;        // every intrinsic of the lens model, in its order
+  std::vector<std::string> names;  // the parameters the prior constrains
+  Eigen::MatrixXd covariance;      // over `names`, in their order; positive definite
+  double noise_px = 0;             // the corner noise the prior is weighed against (> 0)
+  cv::Size image_size;             // the images the prior is for (empty: any)
+};
+
 struct CalibrationOptions {
   LensModel lens_model = LensModel::kOpenCV5;
   bool fix_principal_point = false;  // keep cx, cy at their initial value (image centre if cold)
@@ -38,6 +53,8 @@ struct CalibrationOptions {
   // residual variance) above which the solution is rejected as degenerate: e.g. every view
   // fronto-parallel, where the focal length cannot be told from the distance (paper §3.1).
   double max_relative_focal_std = 0.2;
+  // With a prior, one frame suffices: it is the extra term of the cost above.
+  std::optional<IntrinsicsPrior> prior;
 
   // Ceres style: true if usable, else false with the reason in *error.
   bool is_valid(std::string* error) const;
@@ -92,5 +109,11 @@ CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size ima
                             const CalibrationOptions& options = {},
                             const WarmStart* warm_start = nullptr);
 
+// What options.prior alone says, as a result without frames (no poses, no points): the prior's
+// mean, the covariance of the free intrinsics given the fixed ones (unit form, i.e. divided by
+// noise_px^2, with residual_variance noise_px^2), and the figures derived from it. Pose
+// selection chooses the first target with it. Error(kInvalidArgument) without a prior or for
+// one the options reject.
+CalibrationResult prior_result(cv::Size image_size, const CalibrationOptions& options);
 
 }  // namespace posecal

@@ -26,7 +26,8 @@ void evaluate_at_solution(ceres::Problem& problem, Solution& solution, std::vect
   }
 }
 
-// eps_res overall and per frame, and the residual variance sigma^2 = SSR / (2N - unknowns).
+// eps_res overall and per frame, and the residual variance sigma^2 = SSR / (2N + prior rows -
+// unknowns), SSR over the points only.
 void residual_statistics(const std::vector<double>& residuals, const CovarianceInput& in, CalibrationResult* res) {
   const std::vector<Observation>& frames = *in.frames;
   double ssr = 0;
@@ -40,7 +41,8 @@ void residual_statistics(const std::vector<double>& residuals, const CovarianceI
     res->frame_rms_px.push_back(std::sqrt(fss / static_cast<double>(frames[i].size())));
   }
   res->rms_px = std::sqrt(ssr / in.num_points);
-  res->residual_variance = ssr / std::max(1, 2 * in.num_points - in.num_unknowns);
+  // A prior's rows are pseudo-observations: they count towards the degrees of freedom.
+  res->residual_variance = ssr / std::max(1, 2 * in.num_points + in.prior_rows - in.num_unknowns);
 }
 
 // J^T J, accumulated row by row from the sparse Jacobian.

@@ -4,6 +4,7 @@
 #include <ceres/rotation.h>
 #include <glog/logging.h>
 
+#include <Eigen/Dense>
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -41,6 +42,23 @@ bool CalibrationOptions::is_valid(std::string* error) const {
     if (std::find(names.begin(), names.end(), f) == names.end()) {
       return fail("unknown parameter '" + f + "' in fixed list");
     }
+  }
+  if (prior) {
+    const IntrinsicsPrior& p = *prior;
+    const int m = static_cast<int>(p.names.size());
+    if (static_cast<int>(p.mean.size()) != num_intrinsics(lens_model))
+      return fail("prior: the mean has " + std::to_string(p.mean.size()) +
+                  " values, the lens model " + std::to_string(num_intrinsics(lens_model)));
+    if (m == 0) return fail("prior: no parameter");
+    for (const auto& n : p.names)
+      if (std::find(names.begin(), names.end(), n) == names.end())
+        return fail("prior: unknown parameter '" + n + "'");
+    if (p.covariance.rows() != m || p.covariance.cols() != m)
+      return fail("prior: the covariance is not " + std::to_string(m) + "x" + std::to_string(m));
+    for (double v : p.mean)
+      if (!std::isfinite(v)) return fail("prior: the mean is not finite");
+    if (!p.covariance.allFinite()) return fail("prior: the covariance is not finite");
+    if (!(p.noise_px > 0 && std::isfinite(p.noise_px))) return fail("prior: noise_px must be > 0");
   }
   return true;
 }
@@ -81,6 +99,73 @@ ceres::CostFunction* make_cost(LensModel model, const cv::Point2d& p, const cv::
     using Cost = ReprojectionCost<decltype(m)>;
     return new ceres::AutoDiffCostFunction<Cost, 2, Cost::N, 6>(new Cost{p.x, p.y, P.x, P.y, P.z, aspect});
   });
+}
+
+// The prior's term (IntrinsicsPrior): r = noise_px * U (x_S - mean_S), where U^T U is the inverse
+// of the prior covariance over the parameters S it names, so that |r|^2 is noise_px^2 times the
+// squared Mahalanobis distance. Linear in the intrinsics: the Jacobian is constant.
+class PriorCost final : public ceres::CostFunction {
+ public:
+  PriorCost(const IntrinsicsPrior& prior, const std::vector<std::string>& names) {
+    const int m = static_cast<int>(prior.names.size());
+    const int n = static_cast<int>(names.size());
+    Eigen::LLT<Eigen::MatrixXd> llt(prior.covariance.inverse());
+    if (llt.info() != Eigen::Success || !prior.covariance.inverse().allFinite()) {
+      throw Error(ErrorCode::kInvalidArgument,
+                  "calibration: the prior's covariance is not positive definite");
+    }
+    const Eigen::MatrixXd U = prior.noise_px * Eigen::MatrixXd(llt.matrixU());
+    jacobian_ = Eigen::MatrixXd::Zero(m, n);
+    offset_ = Eigen::VectorXd::Zero(m);
+    Eigen::VectorXd mean_s(m);
+    for (int a = 0; a < m; ++a) {
+      const int i =
+          static_cast<int>(std::find(names.begin(), names.end(), prior.names[a]) - names.begin());
+      jacobian_.col(i) = U.col(a);
+      mean_s[a] = prior.mean[i];
+    }
+    offset_ = -U * mean_s;
+    set_num_residuals(m);
+    mutable_parameter_block_sizes()->push_back(n);
+  }
+  bool Evaluate(double const* const* parameters, double* residuals,
+                double** jacobians) const override {
+    const Eigen::Map<const Eigen::VectorXd> x(parameters[0], jacobian_.cols());
+    Eigen::Map<Eigen::VectorXd>(residuals, jacobian_.rows()) = jacobian_ * x + offset_;
+    if (jacobians != nullptr && jacobians[0] != nullptr) {
+      // Ceres' Jacobians are row-major.
+      Eigen::Map<Eigen::Matrix<double, Eigen::Dynamic, Eigen::Dynamic, Eigen::RowMajor>>(
+          jacobians[0], jacobian_.rows(), jacobian_.cols()) = jacobian_;
+    }
+    return true;
+  }
+
+ private:
+  Eigen::MatrixXd jacobian_;
+  Eigen::VectorXd offset_;
+};
+
+// The prior's rows that constrain a free parameter (each adds one pseudo-observation).
+int prior_rows(const CalibrationOptions& options, const std::vector<bool>& fixed) {
+  if (!options.prior) return 0;
+  const auto& names = intrinsic_names(options.lens_model);
+  int rows = 0;
+  for (const auto& n : options.prior->names) {
+    const auto i = std::find(names.begin(), names.end(), n) - names.begin();
+    if (!fixed[i]) ++rows;
+  }
+  return rows;
+}
+
+void check_prior_size(const CalibrationOptions& options, cv::Size image_size) {
+  if (!options.prior || options.prior->image_size.empty() ||
+      options.prior->image_size == image_size)
+    return;
+  const cv::Size p = options.prior->image_size;
+  throw Error(ErrorCode::kInvalidArgument,
+              "calibration: the prior is for " + std::to_string(p.width) + "x" +
+                  std::to_string(p.height) + " images, these are " +
+                  std::to_string(image_size.width) + "x" + std::to_string(image_size.height));
 }
 
 void check_frames(const std::vector<Observation>& frames) {
@@ -190,6 +275,15 @@ std::vector<bool> fixed_intrinsics(const CalibrationOptions& options) {
   if (std::count(fixed.begin(), fixed.end(), false) == 0) {
     throw Error(ErrorCode::kInvalidArgument, "calibration: every parameter fixed");
   }
+  if (options.prior) {
+    const auto& pn = options.prior->names;
+    for (int i = 0; i < n_intr; ++i) {
+      if (!fixed[i] && std::find(pn.begin(), pn.end(), names[i]) == pn.end()) {
+        throw Error(ErrorCode::kInvalidArgument,
+                    "calibration: the prior does not constrain the free parameter " + names[i]);
+      }
+    }
+  }
   return fixed;
 }
 
@@ -199,6 +293,12 @@ void initial_solution(const std::vector<Observation>& frames, cv::Size image_siz
                       const WarmStart* warm_start, const std::vector<bool>& fixed, CameraModel* model,
                       std::vector<Pose>* poses) {
   const LensModel lens = options.lens_model;
+  // With a prior and no warm start: its mean is the start, the poses come from PnP.
+  WarmStart from_prior;
+  if (options.prior && (warm_start == nullptr || warm_start->model.lens_model() != lens)) {
+    from_prior.model = CameraModel(image_size.width, image_size.height, lens, options.prior->mean);
+    warm_start = &from_prior;
+  }
   if (warm_start != nullptr && warm_start->model.lens_model() == lens &&
       warm_start->model.size() == image_size && warm_start->model.is_valid()) {
     *model = warm_start->model;
@@ -229,13 +329,21 @@ void initial_solution(const std::vector<Observation>& frames, cv::Size image_siz
 
 // The bundle adjustment's residual blocks (one per point) and the subset manifold of the fixed
 // intrinsics, over the blocks of *solution.
-void build_problem(const std::vector<Observation>& frames, LensModel lens, double aspect, const std::vector<bool>& fixed,
+// The prior's block comes last, after every point's (covariance.cpp reads the points' residuals
+// first).
+void build_problem(const std::vector<Observation>& frames, const CalibrationOptions& options,
+                   double aspect, const std::vector<bool>& fixed,
                    calib_internal::Solution* solution, ceres::Problem* problem) {
+  const LensModel lens = options.lens_model;
   for (size_t i = 0; i < frames.size(); ++i) {
     for (size_t k = 0; k < frames[i].size(); ++k) {
       problem->AddResidualBlock(make_cost(lens, frames[i].image_points[k], frames[i].board_points[k], aspect),
                                 nullptr, solution->intrinsics.data(), solution->rt[i].data());
     }
+  }
+  if (options.prior) {
+    problem->AddResidualBlock(new PriorCost(*options.prior, intrinsic_names(lens)), nullptr,
+                              solution->intrinsics.data());
   }
   std::vector<int> fixed_idx;
   for (int i = 0; i < static_cast<int>(fixed.size()); ++i)
@@ -278,13 +386,15 @@ CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size ima
     throw Error(ErrorCode::kInvalidArgument, "calibration: image size must be positive");
   }
   check_frames(frames);
+  check_prior_size(options, image_size);
   const LensModel lens = options.lens_model;
   const std::vector<bool> fixed = fixed_intrinsics(options);
   const int n_free_intr = static_cast<int>(std::count(fixed.begin(), fixed.end(), false));
   int n_points = 0;
   for (const auto& f : frames) n_points += static_cast<int>(f.size());
   const int n_unknowns = n_free_intr + 6 * static_cast<int>(frames.size());
-  if (2 * n_points <= n_unknowns) {
+  const int n_prior = prior_rows(options, fixed);
+  if (2 * n_points + n_prior <= n_unknowns) {
     throw Error(ErrorCode::kDegenerate, "calibration: too few points: " + std::to_string(n_points) +
                                             " points give " + std::to_string(2 * n_points) +
                                             " constraints for " + std::to_string(n_unknowns) +
@@ -305,7 +415,7 @@ CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size ima
   }
   ceres::Problem::Options popt;
   ceres::Problem problem(popt);
-  build_problem(frames, lens, aspect, fixed, &solution, &problem);
+  build_problem(frames, options, aspect, fixed, &solution, &problem);
   const ceres::Solver::Summary summary = solve_problem(options, &problem);
   std::vector<double>& intr = solution.intrinsics;
   if (aspect > 0) intr[1] = intr[0] * aspect;
@@ -327,11 +437,68 @@ CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size ima
     res.poses[i].r << solution.rt[i][0], solution.rt[i][1], solution.rt[i][2];
     res.poses[i].t << solution.rt[i][3], solution.rt[i][4], solution.rt[i][5];
   }
-  calib_internal::CovarianceInput in{&frames, fixed, aspect, n_points, n_unknowns, &intrinsic_names(lens),
-                                     options.max_relative_focal_std};
+  calib_internal::CovarianceInput in{&frames,
+                                     fixed,
+                                     aspect,
+                                     n_points,
+                                     n_unknowns,
+                                     &intrinsic_names(lens),
+                                     options.max_relative_focal_std,
+                                     n_prior};
   calib_internal::covariance_at_solution(problem, solution, in, &res);
   res.solve_ms =
       std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
+  return res;
+}
+
+CalibrationResult prior_result(cv::Size image_size, const CalibrationOptions& options) {
+  std::string why;
+  if (!options.prior) throw Error(ErrorCode::kInvalidArgument, "prior_result: no prior");
+  if (!options.is_valid(&why))
+    throw Error(ErrorCode::kInvalidArgument, "calibration options: " + why);
+  check_prior_size(options, image_size);
+  const IntrinsicsPrior& p = *options.prior;
+  const LensModel lens = options.lens_model;
+  const std::vector<bool> fixed = fixed_intrinsics(options);
+  const auto& names = intrinsic_names(lens);
+  const int n = num_intrinsics(lens);
+  CalibrationResult res;
+  res.model = CameraModel(image_size.width, image_size.height, lens, p.mean);
+  if (!res.model.is_valid(&why))
+    throw Error(ErrorCode::kInvalidArgument, "prior: its mean is not a valid camera: " + why);
+  res.fixed = fixed;
+  // The free parameters given the fixed ones at the mean: the inverse of the free block of the
+  // prior's information matrix.
+  const Eigen::MatrixXd info = p.covariance.inverse();
+  std::vector<int> at(n, -1);  // position in p.names
+  for (int a = 0; a < static_cast<int>(p.names.size()); ++a)
+    at[std::find(names.begin(), names.end(), p.names[a]) - names.begin()] = a;
+  std::vector<int> free_idx;
+  for (int i = 0; i < n; ++i)
+    if (!fixed[i]) free_idx.push_back(i);
+  const int m = static_cast<int>(free_idx.size());
+  Eigen::MatrixXd info_free(m, m);
+  for (int a = 0; a < m; ++a)
+    for (int b = 0; b < m; ++b) info_free(a, b) = info(at[free_idx[a]], at[free_idx[b]]);
+  Eigen::LLT<Eigen::MatrixXd> llt(info_free);
+  if (llt.info() != Eigen::Success) {
+    throw Error(ErrorCode::kInvalidArgument, "prior: the covariance is not positive definite");
+  }
+  const Eigen::MatrixXd cov_free = llt.solve(Eigen::MatrixXd::Identity(m, m));
+  const double s2 = p.noise_px * p.noise_px;
+  res.covariance = Eigen::MatrixXd::Zero(n, n);
+  for (int a = 0; a < m; ++a)
+    for (int b = 0; b < m; ++b) res.covariance(free_idx[a], free_idx[b]) = cov_free(a, b) / s2;
+  res.residual_variance = s2;
+  for (int i = 0; i < n; ++i) {
+    const double su = std::sqrt(std::max(0.0, res.covariance(i, i)));
+    const double v = res.model.params()[i];
+    res.std_unit.push_back(su);
+    res.std_scaled.push_back(su * p.noise_px);
+    res.index_of_dispersion.push_back(v != 0.0 ? su * su / std::abs(v) : su * su);
+  }
+  res.termination = SolverTermination::kConvergence;
+  res.termination_message = "the prior alone";
   return res;
 }
 

@@ -33,6 +33,7 @@ struct CovarianceInput {
   int num_unknowns = 0;
   const std::vector<std::string>* names = nullptr;
   double max_relative_focal_std = 0;
+  int prior_rows = 0;  // the prior's rows on free parameters, after the points' (IntrinsicsPrior)
 };
 
 // Residual statistics, the covariance of eq. 5 and the degeneracy checks at the solution, into

@@ -120,7 +120,8 @@ FleetStatistics fleet_statistics(const std::vector<std::string>& names,
 }
 
 FleetPosition fleet_position(const FleetStatistics& fleet, const std::vector<std::string>& names,
-                             const std::vector<double>& values, double alpha) {
+                             const std::vector<double>& values, double alpha,
+                             const std::vector<double>& unit_covariance) {
   if (!(alpha > 0 && alpha < 1))
     throw Error(ErrorCode::kInvalidArgument, "fleet: the outlier probability must lie in (0, 1)");
   const auto p = static_cast<Eigen::Index>(fleet.names.size());
@@ -133,7 +134,21 @@ FleetPosition fleet_position(const FleetStatistics& fleet, const std::vector<std
     }
     dx[a] = values[static_cast<size_t>(it - names.begin())] - fleet.mean[static_cast<size_t>(a)];
   }
-  Eigen::Map<const Eigen::MatrixXd> s(fleet.covariance.data(), p, p);
+  std::vector<Eigen::Index> at(static_cast<size_t>(p));  // position in `names`
+  for (Eigen::Index a = 0; a < p; ++a)
+    at[static_cast<size_t>(a)] =
+        std::find(names.begin(), names.end(), fleet.names[static_cast<size_t>(a)]) - names.begin();
+  Eigen::MatrixXd s = Eigen::Map<const Eigen::MatrixXd>(fleet.covariance.data(), p, p);
+  if (!unit_covariance.empty()) {
+    const auto n_all = static_cast<Eigen::Index>(names.size());
+    if (static_cast<Eigen::Index>(unit_covariance.size()) != n_all * n_all)
+      throw Error(ErrorCode::kInvalidArgument,
+                  "fleet: the unit's covariance does not fit its parameters");
+    for (Eigen::Index a = 0; a < p; ++a)
+      for (Eigen::Index b = 0; b < p; ++b)
+        s(a, b) += unit_covariance[static_cast<size_t>(at[static_cast<size_t>(a)] * n_all +
+                                                       at[static_cast<size_t>(b)])];
+  }
   const double d2 = dx.dot(Eigen::LLT<Eigen::MatrixXd>(s).solve(dx));
   const double n = fleet.units, dp = static_cast<double>(p);
   const double bound = (n + 1) / n * dp * (n - 1) / (n - dp) * f_quantile(1 - alpha, dp, n - dp);
@@ -149,6 +164,46 @@ FleetPosition fleet_position(const FleetStatistics& fleet, const std::vector<std
     return std::abs(x.second) > std::abs(y.second);
   });
   return out;
+}
+
+FleetPosition fleet_position_of(const FleetStatistics& fleet, const CalibrationResult& result,
+                                const std::vector<Observation>& keyframes,
+                                const CalibrationOptions& options, double alpha, bool* data_only) {
+  const std::vector<std::string>& names = result.model.param_names();
+  *data_only = false;
+  if (options.prior) {
+    CalibrationOptions plain = options;
+    plain.prior.reset();
+    const WarmStart ws{result.model, result.poses};
+    try {
+      const CalibrationResult d = calibrate(keyframes, result.model.size(), plain, &ws);
+      const auto n = static_cast<Eigen::Index>(names.size());
+      const Eigen::MatrixXd c = d.covariance_scaled().topLeftCorner(n, n);
+      std::vector<double> cov(static_cast<size_t>(n * n));
+      for (Eigen::Index a = 0; a < n; ++a)
+        for (Eigen::Index b = 0; b < n; ++b) cov[static_cast<size_t>(a * n + b)] = c(a, b);
+      *data_only = true;
+      return fleet_position(fleet, names, d.model.params(), alpha, cov);
+    } catch (const Error&) {
+      // The keyframes alone do not determine the intrinsics: test the estimate with the prior.
+    }
+  }
+  return fleet_position(fleet, names, result.model.params(), alpha);
+}
+
+IntrinsicsPrior fleet_prior(LensModel lens, const std::vector<FleetUnit>& units, double noise_px) {
+  const std::vector<std::string>& names = intrinsic_names(lens);
+  const FleetStatistics f = fleet_statistics(names, units);
+  IntrinsicsPrior prior;
+  prior.mean.assign(names.size(), 0.0);
+  for (const FleetUnit& u : units)
+    for (size_t i = 0; i < names.size(); ++i)
+      prior.mean[i] += u.values[i] / static_cast<double>(units.size());
+  prior.names = f.names;
+  const auto p = static_cast<Eigen::Index>(f.names.size());
+  prior.covariance = Eigen::Map<const Eigen::MatrixXd>(f.covariance.data(), p, p);
+  prior.noise_px = noise_px;
+  return prior;
 }
 
 }  // namespace posecal

@@ -9,11 +9,17 @@
 // probability alpha, whatever n. p counts the parameters that vary in the fleet. The
 // parameters responsible are those whose own standardised deviation (x_i - m_i) / sqrt(S_ii)
 // is largest (docs/math.md, "Fleet outliers").
+//
+// The fleet prior (fleet_prior) is the same population as a Gaussian prior on the next unit's
+// intrinsics: its mean is where a session starts, its covariance the prior term of the bundle
+// adjustment (calib/calibration.hpp, IntrinsicsPrior; docs/math.md, "The fleet prior").
 #pragma once
 
 #include <string>
 #include <utility>
 #include <vector>
+
+#include "calib/calibration.hpp"
 
 namespace posecal {
 
@@ -46,9 +52,29 @@ struct FleetPosition {
 };
 
 // Where a unit with intrinsics `values` (ordered as `names`, which must hold every name of
-// `fleet`) lies in the fleet.
+// `fleet`) lies in the fleet. `unit_covariance` (row-major over `names`, or empty): the
+// uncertainty of `values`, added to the fleet's covariance, so that a unit measured with fewer
+// keyframes than the fleet's units is not flagged for its own noise. The fleet's covariance
+// already holds its units' measurement noise, so the sum counts that part twice and the
+// false-alarm rate is below alpha (the bound is unchanged): conservative, not exact.
 FleetPosition fleet_position(const FleetStatistics& fleet, const std::vector<std::string>& names,
-                             const std::vector<double>& values, double alpha);
+                             const std::vector<double>& values, double alpha,
+                             const std::vector<double>& unit_covariance = {});
+
+// The fleet position of a calibration. Calibrated with a prior (options.prior), its estimate is
+// pulled towards the fleet, which would hide the very defect the test looks for: the keyframes
+// are then solved again without the prior (warm-started from `result`), and that estimate is
+// tested with its own covariance added (above); *data_only says so. If the keyframes cannot
+// determine the intrinsics without the prior, the prior's estimate is tested and *data_only is
+// false.
+FleetPosition fleet_position_of(const FleetStatistics& fleet, const CalibrationResult& result,
+                                const std::vector<Observation>& keyframes,
+                                const CalibrationOptions& options, double alpha, bool* data_only);
+
+// The fleet of `units` (values ordered as intrinsic_names(lens)) as a prior for the next unit:
+// the mean of every intrinsic, and the sample covariance of those that vary in the fleet
+// (fleet_statistics, whose errors it throws), weighed against corners of noise `noise_px`.
+IntrinsicsPrior fleet_prior(LensModel lens, const std::vector<FleetUnit>& units, double noise_px);
 
 // The F distribution's quantile: F^-1(q; d1, d2), for 0 < q < 1.
 double f_quantile(double q, double d1, double d2);

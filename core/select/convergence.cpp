@@ -77,6 +77,9 @@ void CalibrationEngine::Impl::update_convergence(const CalibrationResult& prev, 
 }
 
 bool CalibrationEngine::Impl::converges_prospectively(int param, double predicted_variance) {
+  // Started from a prior: nothing converges before the first keyframe (a tight prior would
+  // otherwise end the run without a calibration).
+  if (!result) return false;
   const double now = result->std_unit[param] * result->std_unit[param];
   const double red = reduction(now, predicted_variance);
   if (red >= opt.convergence_threshold) return false;

@@ -127,6 +127,11 @@ CalibrationEngine::Impl::Impl(cv::Size s, const EngineOptions& o)
   const double f = o.initial_focal_guess > 0 ? o.initial_focal_guess : std::max(s.width, s.height);
   estimate = CameraModel::pinhole(o.calibration.lens_model, s.width, s.height, f, f, (s.width - 1) * 0.5,
                                   (s.height - 1) * 0.5);
+  if (o.calibration.prior) {
+    prior = prior_result(s, o.calibration);
+    prior_expected = posecal::expected_error(*prior);
+    estimate = prior->model;
+  }
   const int n = estimate.num_params();
   param_converged.assign(n, false);
   param_targeted.assign(n, 0);
@@ -172,7 +177,7 @@ void CalibrationEngine::Impl::set_target(TargetPose t, int param) {
 int CalibrationEngine::Impl::corners_required() const {
   const double n_intr = estimate.num_params();
   double pts;
-  if (keyframes.size() < 2) {
+  if (keyframes.size() < 2 && !prior) {
     pts = opt.constraint_factor * (n_intr + 2 * 6) / 2.0 / 2.0;
   } else {
     pts = opt.constraint_factor * 6 / 2.0;
@@ -238,6 +243,10 @@ void CalibrationEngine::Impl::measure_stillness(const Detection& det, FrameRepor
 // The board seen for the first time starts the bootstrap; until two keyframes exist, a better
 // single-view fit replaces the estimate (paper §3.4).
 void CalibrationEngine::Impl::bootstrap_step(const Detection& det, const FrameReport& r) {
+  if (prior) {
+    if (state == EngineState::kWaitingForBoard && r.board_visible) start_from_prior();
+    return;
+  }
   if (state == EngineState::kWaitingForBoard && r.board_visible) set_state(EngineState::kBootstrapping);
   if (state != EngineState::kBootstrapping && state != EngineState::kInitialPose1 &&
       state != EngineState::kInitialPose2) {
@@ -255,6 +264,18 @@ void CalibrationEngine::Impl::bootstrap_step(const Detection& det, const FrameRe
     if (first || !target || std::abs(estimate.fx() - f_before) > 0.02 * f_before) {
       set_target(posegen.initial_pose(0, estimate, initial_retries), -1);
     }
+  }
+}
+
+// With a prior there is no bootstrap and no initial pose: the first target is chosen from what
+// the prior says, as every later one is from the last calibration (docs/pose-selection.md, "The
+// fleet prior").
+void CalibrationEngine::Impl::start_from_prior() {
+  set_state(EngineState::kRefining, "starting from the prior");
+  if (opt.accuracy_px) {
+    choose_accuracy_target();
+  } else {
+    choose_refinement_target();
   }
 }
 
@@ -330,7 +351,7 @@ void CalibrationEngine::Impl::capture(const Detection& det) {
   emit(ce);
   robot_reached = false;
 
-  if (keyframes.size() == 1) {
+  if (keyframes.size() == 1 && !prior) {
     set_state(EngineState::kInitialPose2);
     initial_retries = 0;
     set_target(posegen.initial_pose(1, estimate), -1);
@@ -386,7 +407,7 @@ bool CalibrationEngine::Impl::recalibrate() {
     ++param_targeted[tgt];
     ++group_keyframes[static_cast<int>(param_group(tgt))];
   }
-  const std::optional<CalibrationResult> prev = result;
+  const std::optional<CalibrationResult> prev = result ? result : prior;
   result = now;
   estimate = now.model;
   expected = posecal::expected_error(now);

@@ -2,6 +2,7 @@
 // fed one frame at a time. It knows nothing of where frames come from.
 //
 //   WaitingForBoard --board seen--> Bootstrapping --focal-only fit ok--> InitialPose1
+//   WaitingForBoard --board seen, with a prior (CalibrationOptions::prior)--> Refining
 //   InitialPose1 --keyframe 1--> InitialPose2 --keyframe 2 + calibration--> Refining(param)
 //   Refining --keyframe, all converged--> Converged
 //   Refining --keyframe cap reached--> Failed (result kept, reported as not converged)

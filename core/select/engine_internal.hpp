@@ -45,6 +45,12 @@ struct CalibrationEngine::Impl {
   std::vector<Observation> keyframes;
   std::vector<int> keyframe_target;  // parameter each keyframe was captured for (-1: init)
   std::optional<CalibrationResult> result;
+  // With a prior (CalibrationOptions::prior): what it alone says (prior_result), the basis of
+  // the first target and of the first keyframe's ratio test.
+  std::optional<CalibrationResult> prior;
+  std::optional<ExpectedError> prior_expected;  // of `prior`
+  // The calibration targets are chosen with: the last one, else the prior's.
+  const CalibrationResult& basis() const { return result ? *result : *prior; }
   std::optional<ExpectedError> expected;  // of `result`
   Eigen::MatrixXd information;  // marginal information of the free intrinsics (scoring)
   Eigen::MatrixXd gram;         // projection_gram() of the estimate (projection scoring)
@@ -84,6 +90,7 @@ struct CalibrationEngine::Impl {
   void after_calibration();
   // Recalibrates with the keyframes; false (keyframe dropped, event emitted) if it is rejected.
   bool recalibrate();
+  void start_from_prior();
   bool scoring() const { return opt.pose_candidates > 1 || opt.prospective_convergence; }
 
   // --- bootstrap.cpp ---

@@ -9,7 +9,7 @@ namespace posecal {
 
 namespace {
 
-void check_record(const KeyframeRecord& r, size_t index, int num_params) {
+void check_record(const KeyframeRecord& r, size_t index, int num_params, bool with_prior) {
   const std::string where = "journal keyframe " + std::to_string(index + 1) + ": ";
   auto bad = [&](const std::string& why) { throw Error(ErrorCode::kInvalidArgument, where + why); };
   if (static_cast<int>(r.estimate_after.size()) != num_params ||
@@ -30,8 +30,10 @@ void check_record(const KeyframeRecord& r, size_t index, int num_params) {
                      r.state_after != EngineState::kBootstrapping &&
                      r.state_after != EngineState::kInitialPose1;
   if (!captured_in || !after) bad("a keyframe cannot be captured in these states");
-  if (index == 0 && r.state_before != EngineState::kInitialPose1)
+  if (index == 0 && !with_prior && r.state_before != EngineState::kInitialPose1)
     bad("the first keyframe is the first initial pose");
+  if (index == 0 && with_prior && r.state_before != EngineState::kRefining)
+    bad("a session with a prior has no initial poses");
 }
 
 }  // namespace
@@ -58,7 +60,7 @@ bool CalibrationEngine::restore(const std::vector<KeyframeRecord>& records) {
     throw Error(ErrorCode::kState, "engine: keyframes can be restored only before the first frame");
   }
   const int n = s.estimate.num_params();
-  for (size_t k = 0; k < records.size(); ++k) check_record(records[k], k, n);
+  for (size_t k = 0; k < records.size(); ++k) check_record(records[k], k, n, s.prior.has_value());
   if (records.empty()) return true;
   // No events while rebuilding: the host saw them when the keyframes were captured.
   auto callback = std::move(s.callback);
@@ -72,7 +74,8 @@ bool CalibrationEngine::restore(const std::vector<KeyframeRecord>& records) {
     const KeyframeRecord& r = records[k];
     s.keyframes.push_back(r.observation);
     s.keyframe_target.push_back(r.state_before == EngineState::kRefining ? r.target_param : -1);
-    if (k == 0) {  // the first keyframe is not calibrated alone: its estimate is the bootstrap's
+    if (k == 0 &&
+        !s.prior) {  // the first keyframe is not calibrated alone: its estimate is the bootstrap's
       s.estimate =
           CameraModel(s.size.width, s.size.height, s.estimate.lens_model(), r.estimate_after);
       s.have_bootstrap = true;

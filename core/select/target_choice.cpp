@@ -56,7 +56,8 @@ void CalibrationEngine::Impl::choose_accuracy_target() {
   prepare_scoring();
   std::optional<ViewCandidates> views;
   if (opt.view_candidates > 0) views.emplace(view_candidates());
-  const int param = expected && expected->limiting_param >= 0 ? expected->limiting_param : max_iod_parameter();
+  const ExpectedError* e = expected ? &*expected : prior_expected ? &*prior_expected : nullptr;
+  const int param = e && e->limiting_param >= 0 ? e->limiting_param : max_iod_parameter();
   if (param < 0) throw Error(ErrorCode::kInternal, "accuracy target: no free intrinsic");
   set_picked_target(best_candidate(param, views ? &*views : nullptr, true), param);
 }
@@ -85,9 +86,9 @@ int CalibrationEngine::Impl::max_iod_parameter() const {
   int best = -1;
   double best_iod = -1;
   for (int i = 0; i < estimate.num_params(); ++i) {
-    if (param_converged[i] || result->fixed[i]) continue;
-    if (result->index_of_dispersion[i] > best_iod) {
-      best_iod = result->index_of_dispersion[i];
+    if (param_converged[i] || basis().fixed[i]) continue;
+    if (basis().index_of_dispersion[i] > best_iod) {
+      best_iod = basis().index_of_dispersion[i];
       best = i;
     }
   }
@@ -145,7 +146,7 @@ ViewCandidates CalibrationEngine::Impl::screen_views(const std::vector<ViewPose>
   vo.count = opt.view_candidates;
   vo.margin_px = view_margin_px();
   vo.shortlist = kExactViews;
-  return ViewCandidates(estimate, board, result->fixed, information, gram, pool, vo);
+  return ViewCandidates(estimate, board, basis().fixed, information, gram, pool, vo);
 }
 
 double CalibrationEngine::Impl::view_margin_px() const {
@@ -178,14 +179,15 @@ void CalibrationEngine::Impl::grow_view_pool(int n, int pool_size) {
 // Predicted covariance of the free intrinsics after capturing `t` (Sigma_p = I), exact at the
 // linearisation point (docs/math.md).
 Eigen::MatrixXd CalibrationEngine::Impl::predicted_covariance(const TargetPose& t) const {
-  const Eigen::MatrixXd info = information + frame_information(estimate, t.T_cam_board, board.corners(), result->fixed);
+  const Eigen::MatrixXd info =
+      information + frame_information(estimate, t.T_cam_board, board.corners(), basis().fixed);
   return info.ldlt().solve(Eigen::MatrixXd::Identity(info.rows(), info.cols()));
 }
 
 // Position of `param` among the free intrinsics, -1 if it is fixed.
 int CalibrationEngine::Impl::free_position(int param) const {
-  if (result->fixed[param]) return -1;
-  return static_cast<int>(std::count(result->fixed.begin(), result->fixed.begin() + param, false));
+  if (basis().fixed[param]) return -1;
+  return static_cast<int>(std::count(basis().fixed.begin(), basis().fixed.begin() + param, false));
 }
 
 // Predicted variance of parameter `param` after capturing `t`.
@@ -201,15 +203,16 @@ double CalibrationEngine::Impl::predicted_projection(const TargetPose& t) const 
 }
 
 void CalibrationEngine::Impl::prepare_scoring() {
-  information = intrinsics_information(*result);
+  information = intrinsics_information(basis());
   // 8x5 rays: the same choices as 16x9 in 46 of 48 closed-loop runs (24 benchmark cameras), at a
   // quarter of the cost (docs/performance.md).
-  if (opt.candidate_score == EngineOptions::CandidateScore::kProjection) gram = projection_gram(estimate, result->fixed, 8, 5);
+  if (opt.candidate_score == EngineOptions::CandidateScore::kProjection)
+    gram = projection_gram(estimate, basis().fixed, 8, 5);
 }
 
 // A new target for the same parameter (skipped or timed-out target).
 TargetPose CalibrationEngine::Impl::next_pose(int param) {
-  if (opt.pose_candidates <= 1 || !result) return posegen.next_pose(param, estimate);
+  if (opt.pose_candidates <= 1 || (!result && !prior)) return posegen.next_pose(param, estimate);
   prepare_scoring();
   if (opt.view_candidates > 0) {
     // Rule candidates and views together, as for a new target; a skipped view is not offered

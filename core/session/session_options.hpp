@@ -21,8 +21,10 @@ struct SessionOptions {
   std::string spec;           // a quality specification's path ("" = none; plugin/src/quality_gate)
   std::string records;        // the calibration record store ("" = none; records/record_store)
   std::string records_spool;
-  double fleet_outlier_probability = 0.001;  // records/fleet.hpp  // where a run the store was away
-                                             // for waits (records/record_writer)
+  double fleet_outlier_probability = 0.001;  // records/fleet.hpp
+  // "prior": "fleet": start from the fleet's mean and weigh the calibration with its spread
+  // (records/fleet.hpp, fleet_prior; plugin/src/session_abi.cpp builds it from `records`).
+  bool fleet_prior = false;
   std::string run_id;         // the record's run id ("" = a new UUID)
   std::string station_id, operator_id, lens_id;  // recorded with the run
   bool is_valid(std::string* error) const { return engine.is_valid(error); }

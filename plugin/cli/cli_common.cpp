@@ -195,9 +195,10 @@ Json summary(const Json& result, double wall_ms) {
   for (const char* k : {"expected_error_px", "expected_error_p90_px", "expected_error_unit_px", "expected_error_limited_by"}) {
     j[k] = result.value(k, Json());
   }
-  for (const char* k : {"eps_test", "eps_gt", "ground_truth", "operator_attempts", "failure", "journal",
-                        "resumed_keyframes", "resume_identical", "journal_note", "seconds",
-                        "verdict", "verdict_reasons", "spec", "records", "run_id", "records_note"}) {
+  for (const char* k :
+       {"eps_test", "eps_gt", "ground_truth", "operator_attempts", "failure", "journal",
+        "resumed_keyframes", "resume_identical", "journal_note", "seconds", "verdict",
+        "verdict_reasons", "spec", "records", "run_id", "records_note", "fleet", "prior"}) {
     if (result.contains(k)) j[k] = result[k];
   }
   j["camera"] = result.value("camera", Json());
@@ -216,6 +217,22 @@ void print_verdict(const Json& j) {
                 j.value("verdict", "") == "pass" ? "PASS" : "FAIL");
     for (const auto& r : j.value("verdict_reasons", Json::array()))
       if (r.is_string()) std::printf("  %s\n", r.get<std::string>().c_str());
+  }
+  // The fleet prior (--prior fleet) and the fleet outlier test, where they ran.
+  if (j.contains("prior") && j["prior"].is_object()) {
+    const Json& p = j["prior"];
+    if (p.value("used", false)) {
+      std::printf("fleet prior: %d units, stop at %.3f px\n", p.value("units", 0),
+                  p.value("accuracy_px", 0.0));
+    } else {
+      std::printf("no fleet prior: %s\n", p.value("note", std::string()).c_str());
+    }
+  }
+  if (j.contains("fleet") && j["fleet"].is_object() &&
+      j["fleet"].value("outlier", Json()).is_boolean() && j["fleet"]["outlier"].get<bool>()) {
+    std::printf("FLEET OUTLIER: distance %.2f above %.2f among %d units\n",
+                j["fleet"].value("distance", 0.0), j["fleet"].value("threshold", 0.0),
+                j["fleet"].value("units", 0));
   }
   // The record (--records), where there is one to speak of.
   if (j.contains("records_note") && j["records_note"].is_string()) {

@@ -367,7 +367,11 @@ typedef struct posecal_image {
  *   written into the store when a later run opens it), "fleet_outlier_probability" (0.001; with
  *   "records", the finished result's "fleet": its position among the passed units of the same
  *   camera model and lens id in the store, flagged "outlier" beyond the bound that a normal unit
- *   exceeds with this probability; docs/c-api.md, "Fleet outliers"), "run_id" (unset: a
+ *   exceeds with this probability; docs/c-api.md, "Fleet outliers"), "prior" ("none"; "fleet"
+ *   with "records": the session starts from the mean of those passed units and uses their
+ *   spread as a Bayesian prior in the calibration, stopping at "accuracy_px", by default the
+ *   fleet's median expected error; the result's "prior" says whether it was used and why not;
+ *   docs/c-api.md, "The fleet prior"), "run_id" (unset: a
  *   new random UUID; a run id already in the store is not recorded again), "station_id",
  *   "operator_id", "lens_id" (unset; recorded with the run). docs/c-api.md, "Records".
  * An unknown key is POSECAL_E_INVALID_ARGUMENT. Opening a camera may block up to ~3 s. The

@@ -3,6 +3,8 @@
 #pragma once
 
 #include <memory>
+#include <nlohmann/json.hpp>
+#include <optional>
 
 #include "records/record_store.hpp"
 #include "select/engine.hpp"
@@ -16,8 +18,19 @@ struct Resolved {
   bool identical_to_last_keyframe = false;
 };
 
-// Throws Error(kState) for a run of fewer than two keyframes, Error(kDegenerate) if its
-// keyframes give no calibration, Error(kInvalidArgument) for a recorded config it cannot read.
+// The fleet prior a session used, as its result's "prior" keeps it ({"used": true, "names",
+// "mean": {param: value}, "covariance": rows over names, "noise_px", "image_width",
+// "image_height", "accuracy_px", ...}): written by session_abi.cpp, read back by resolve() so
+// that a run calibrated with a prior re-solves bit for bit whatever the fleet is now.
+nlohmann::json prior_json(const IntrinsicsPrior& prior,
+                          const std::vector<std::string>& param_names);
+// The prior of a result's "prior" (nullopt if it has none or did not use one);
+// Error(kInvalidArgument) naming what is malformed.
+std::optional<IntrinsicsPrior> prior_from_json(const nlohmann::json& result, LensModel lens);
+
+// Throws Error(kState) for a run of fewer than two keyframes (one with a prior), Error(kDegenerate)
+// if its keyframes give no calibration, Error(kInvalidArgument) for a recorded config it cannot
+// read.
 Resolved resolve(const RunRecord& r);
 
 }  // namespace posecal::abi

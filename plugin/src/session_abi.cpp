@@ -5,6 +5,7 @@
 //        --converged/failed--> finished (step/feed/pose_reached/skip: POSECAL_E_STATE)
 // and, orthogonally, "inside the event callback", where only status, target_pose and result
 // may be called on the session.
+#include <algorithm>
 #include <atomic>
 #include <chrono>
 #include <cmath>
@@ -25,6 +26,7 @@
 #include "records/record_store.hpp"
 #include "records/record_writer.hpp"
 #include "records/sql.hpp"
+#include "records_resolve.hpp"
 #include "session/session.hpp"
 #include "session_config.hpp"
 #include "sim/sim_camera.hpp"
@@ -60,6 +62,8 @@ struct posecal_session {
   std::string records_url, lens_id;
   double fleet_alpha = 0.001;
   std::optional<Json> fleet;
+  // "prior": "fleet": the prior's figures, or why it was not used (apply_fleet_prior).
+  Json prior_info;
   bool record_finished = false;
   // sim:// only: the fixed test set, rendered once, and the evaluation of the last result.
   std::vector<Observation> test_set;
@@ -312,6 +316,31 @@ const CalibrationResult& require_result(posecal_session* s) {
   return *eng->result();
 }
 
+// The passed units of camera model `model` and lens id `lens_id` in the store at `url` with a
+// calibration of lens model `lens` (one per serial, the newest; run `except` left out), their
+// intrinsics in intrinsic_names(lens) order; *results (if given): each unit's stored result.
+std::vector<FleetUnit> fleet_units(const std::string& url, const std::string& model,
+                                   const std::string& lens_id, LensModel lens,
+                                   const std::string& except, std::vector<Json>* results) {
+  const std::vector<std::string>& names = intrinsic_names(lens);
+  std::vector<FleetUnit> units;
+  std::set<std::string> serials;
+  for (const RecordStore::FleetRun& run : RecordStore::open(url)->fleet_runs(model, lens_id)) {
+    if (run.run_id == except || !serials.insert(run.serial).second) continue;
+    Json res = Json::parse(run.result, nullptr, false);
+    if (!res.is_object() || res.value("model", "") != lens_model_name(lens)) continue;
+    FleetUnit u{run.run_id, run.serial, {}};
+    for (const std::string& n : names) {
+      if (!res.contains(n) || !res[n].is_number()) break;
+      u.values.push_back(res[n].get<double>());
+    }
+    if (u.values.size() != names.size()) continue;
+    units.push_back(std::move(u));
+    if (results) results->push_back(std::move(res));
+  }
+  return units;
+}
+
 // Where the result lies among the passed units of the same camera model and lens id in the
 // session's record store (records/fleet.hpp): {"units", "distance", "threshold",
 // "probability", "outlier", "deviations": [{"param", "z"}, ...] largest first, "note"}.
@@ -320,24 +349,19 @@ Json fleet_json(posecal_session* s, const CalibrationResult& r) {
   Json j = {{"units", 0}, {"outlier", nullptr}, {"probability", s->fleet_alpha}};
   try {
     const std::vector<std::string>& names = r.model.param_names();
-    std::vector<FleetUnit> units;
-    std::set<std::string> serials;
-    for (const RecordStore::FleetRun& run :
-         RecordStore::open(s->records_url)->fleet_runs(s->camera.model, s->lens_id)) {
-      if (run.run_id == s->run_id || !serials.insert(run.serial).second) continue;
-      const Json res = Json::parse(run.result, nullptr, false);
-      if (!res.is_object() || res.value("model", "") != lens_model_name(r.model.lens_model()))
-        continue;
-      FleetUnit u{run.run_id, run.serial, {}};
-      for (const std::string& n : names) {
-        if (!res.contains(n) || !res[n].is_number()) break;
-        u.values.push_back(res[n].get<double>());
-      }
-      if (u.values.size() == names.size()) units.push_back(std::move(u));
-    }
+    const std::vector<FleetUnit> units = fleet_units(s->records_url, s->camera.model, s->lens_id,
+                                                     r.model.lens_model(), s->run_id, nullptr);
     j["units"] = units.size();
     const FleetStatistics fleet = fleet_statistics(names, units);
-    const FleetPosition pos = fleet_position(fleet, names, r.model.params(), s->fleet_alpha);
+    const CalibrationEngine& eng = s->session->engine();
+    bool data_only = false;
+    const FleetPosition pos =
+        fleet_position_of(fleet, r, eng.keyframe_observations(), eng.options().calibration,
+                          s->fleet_alpha, &data_only);
+    // With the prior, the keyframes' own estimate (without it) is what was tested.
+    j["tested"] = eng.options().calibration.prior
+                      ? (data_only ? "keyframes without the prior" : "estimate with the prior")
+                      : "estimate";
     j["distance"] = abi::number(pos.distance);
     j["threshold"] = abi::number(pos.threshold);
     j["outlier"] = pos.outlier;
@@ -350,6 +374,69 @@ Json fleet_json(posecal_session* s, const CalibrationResult& r) {
     j["note"] = e.what();
   }
   return j;
+}
+
+double median_of(std::vector<double> v) {
+  if (v.empty()) return NAN;
+  std::sort(v.begin(), v.end());
+  const size_t h = v.size() / 2;
+  return v.size() % 2 ? v[h] : 0.5 * (v[h - 1] + v[h]);
+}
+
+// "prior": "fleet" (session key prior): the passed units of the camera's model and lens id in
+// the records as the engine's prior (records/fleet.hpp, fleet_prior), weighed against their
+// median residual sigma; unless the config sets accuracy_px, the stop is their median expected
+// error (90th percentile), i.e. what a unit calibrated without the prior reached. The units must
+// share one image size (the engine refuses a camera of another) and vary in every parameter the
+// session leaves free; otherwise, or with too few units (p + 3) or a store that cannot be read,
+// the session runs without the prior and *info's note says why.
+void apply_fleet_prior(const SessionOptions& so, const Json& config, const DeviceInfo& camera,
+                       EngineOptions* eo, Json* info) {
+  *info = {{"source", "fleet"},
+           {"used", false},
+           {"units", 0},
+           {"accuracy_px", nullptr},
+           {"note", nullptr}};
+  if (so.records.empty()) {
+    throw Error(ErrorCode::kInvalidArgument,
+                "session config 'prior': \"fleet\" needs 'records' (the store of the fleet)");
+  }
+  try {
+    std::vector<Json> results;
+    std::vector<FleetUnit> units = fleet_units(so.records, camera.model, so.lens_id,
+                                               eo->calibration.lens_model, so.run_id, &results);
+    std::vector<double> sigma, p90;
+    for (const Json& r : results) {
+      if (r.contains("residual_sigma") && r["residual_sigma"].is_number())
+        sigma.push_back(r["residual_sigma"].get<double>());
+      if (r.contains("expected_error_p90_px") && r["expected_error_p90_px"].is_number())
+        p90.push_back(r["expected_error_p90_px"].get<double>());
+    }
+    (*info)["units"] = units.size();
+    CalibrationOptions co = eo->calibration;
+    co.prior = fleet_prior(co.lens_model, units, median_of(sigma));
+    std::string why;
+    if (!co.is_valid(&why)) throw Error(ErrorCode::kDegenerate, "fleet prior: " + why);
+    const cv::Size size(results.front().value("image_width", 0),
+                        results.front().value("image_height", 0));
+    for (const Json& r : results) {
+      if (r.value("image_width", 0) != size.width || r.value("image_height", 0) != size.height)
+        throw Error(ErrorCode::kDegenerate, "fleet prior: the units' images differ in size");
+    }
+    co.prior->image_size = size;
+    prior_result(size, co);  // throws if a free parameter of the session does not vary in the fleet
+    eo->calibration = co;
+    if (!config.contains("accuracy_px") || config["accuracy_px"].is_null()) {
+      if (!(median_of(p90) > 0))
+        throw Error(ErrorCode::kDegenerate, "fleet prior: the units have no expected error");
+      eo->accuracy_px = median_of(p90);
+    }
+    info->update(abi::prior_json(*co.prior, intrinsic_names(co.lens_model)));
+    (*info)["used"] = true;
+    (*info)["accuracy_px"] = *eo->accuracy_px;
+  } catch (const Error& e) {
+    (*info)["note"] = std::string(e.what()) + "; calibrating without the prior";
+  }
 }
 
 // The result JSON (posecal_session_result; the record's result): Error(kState) before a
@@ -395,6 +482,7 @@ Json result_json(posecal_session* session) {
   }
   if (session->spec) j.update(abi::quality_verdict(*session->spec, j, eng.keyframes(), seconds));
   records_json(session, &j);
+  if (!session->prior_info.is_null()) j["prior"] = session->prior_info;
   if (!session->records_url.empty() && (session->session->finished() || session->interrupted)) {
     if (!session->fleet) session->fleet = fleet_json(session, r);
     j["fleet"] = *session->fleet;
@@ -531,6 +619,7 @@ POSECAL_API posecal_status posecal_session_open(posecal_context* ctx, const char
     }
     s->external = uri.scheme == "external";
     s->camera = camera->info();
+    if (so_config.fleet_prior) apply_fleet_prior(so_config, c, s->camera, &eo, &s->prior_info);
     s->session = std::make_unique<CalibrationSession>(std::move(camera), eo, lock);
     if (!so_config.journal.empty()) {
       // The config a journal is resumed with must be the one it was recorded with, but for

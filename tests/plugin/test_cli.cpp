@@ -21,7 +21,9 @@
 #include <sstream>
 
 #include "board/board.hpp"
+#include "common/run_id.hpp"
 #include "io/model_file.hpp"
+#include "lens/reference_models.hpp"
 #include "pg_server.hpp"
 #include "records/record_store.hpp"
 #include "session/journal.hpp"
@@ -1195,6 +1197,95 @@ TEST(Cli, RecordsKeepTheRunAndNeverCostTheCalibration) {
 // A station run's directory (issue 15): the summary names the run (its id, times, version); a
 // finished run is not calibrated over without --force; with it, the old run's files go (no stale
 // file beside the new summary) and the records keep both runs.
+// A fleet of `units` passed runs of "synthetic camera 1280x720" with lens L1 in a new SQLite
+// store: C525 units with 0.3% focal and 0.5 px principal-point spread, as a line's earlier
+// calibrations would have left them (results only; the prior needs nothing else).
+void write_fleet(const std::string& db, int units) {
+  auto store = posecal::RecordStore::open(db);
+  cv::RNG rng(99);
+  const posecal::CameraModel ref = posecal::c525_reference_model();
+  for (int i = 0; i < units; ++i) {
+    posecal::RunIdentity id;
+    id.run_id = posecal::new_run_id();
+    id.camera_model = "synthetic camera 1280x720";
+    id.camera_serial = std::to_string(7000 + i);
+    id.lens_id = "L1";
+    id.config = "{}";
+    id.started = "2026-12-04T08:00:00Z";
+    store->begin_run(id);
+    nlohmann::json r = {{"model", "opencv5"},           {"image_width", 1280},
+                        {"image_height", 720},          {"residual_sigma", 0.03},
+                        {"expected_error_p90_px", 0.4}, {"converged", true}};
+    const double f = 1 + 0.003 * rng.gaussian(1);
+    const std::vector<double> sd = {0, 0, 0.5, 0.5, 0.0002, 0.005, 0.0002, 0.0002, 0.007};
+    for (int k = 0; k < 9; ++k) {
+      double v = ref.params()[k] + sd[k] * rng.gaussian(1);
+      if (k < 2) v = ref.params()[k] * f * (k == 1 ? 1 + 0.0005 * rng.gaussian(1) : 1.0);
+      r[ref.param_names()[k]] = v;
+    }
+    store->finish_run(id.run_id, "converged", r.dump(), "", 0.3);
+  }
+}
+
+// "prior": "fleet": the session starts from the fleet of its camera model and lens in the
+// records, stops at the fleet's median expected error, records the prior it used so that
+// `records resolve` reproduces the run bit for bit; too small a fleet calibrates without it and
+// says why; without a store the key is refused naming 'records'.
+TEST(Cli, FleetPriorFromTheRecords) {
+  const std::string dir = temp_dir("posecal_fleet_prior");
+  const std::string db = dir + "/records.sqlite";
+  write_fleet(db, 15);
+  // This unit: the C525 with the principal point 1 px off.
+  posecal::CameraModel unit = posecal::c525_reference_model();
+  unit.params()[2] += 1;
+  posecal::write_camera_model(dir + "/unit.yml", unit);
+  const std::string base =
+      "simulate --seed 5 --camera-model " + dir + "/unit.yml --json --lens-id L1 --records " + db;
+  CliRun r = run(base + " --prior fleet", true);
+  ASSERT_EQ(r.status, 0) << r.out;
+  auto j = nlohmann::json::parse(r.out);
+  ASSERT_TRUE(j["prior"]["used"].get<bool>()) << j["prior"].dump();
+  EXPECT_EQ(j["prior"]["units"], 15);
+  EXPECT_NEAR(j["prior"]["accuracy_px"].get<double>(), 0.4, 1e-12);
+  EXPECT_TRUE(j["converged"].get<bool>()) << r.out;
+  EXPECT_LE(j["expected_error_p90_px"].get<double>(), 0.4);
+  const int with_prior = j["keyframes"].get<int>();
+  // The outlier test ran on the keyframes' own estimate (the prior pulls towards the fleet).
+  EXPECT_EQ(j["fleet"]["tested"], "keyframes without the prior") << j["fleet"].dump();
+  EXPECT_FALSE(j["fleet"]["outlier"].get<bool>()) << j["fleet"].dump();
+  const std::string run_id = j["run_id"];
+  // More units in the store now: the re-solve still uses the prior the run had.
+  write_fleet(db, 3);
+  CliRun rr = run("records resolve " + run_id + " --db " + db + " --json", true);
+  ASSERT_EQ(rr.status, 0) << rr.out;
+  EXPECT_TRUE(nlohmann::json::parse(rr.out)["identical"].get<bool>()) << rr.out;
+
+  // The same unit and operator without the prior: more keyframes for the same figure.
+  r = run(base + " --accuracy-px 0.4", true);
+  ASSERT_EQ(r.status, 0) << r.out;
+  j = nlohmann::json::parse(r.out);
+  EXPECT_FALSE(j.contains("prior")) << r.out;
+  EXPECT_LT(with_prior, j["keyframes"].get<int>());
+
+  // Too few units: no prior, and why.
+  const std::string small = dir + "/small.sqlite";
+  write_fleet(small, 5);
+  r = run("simulate --seed 5 --json --lens-id L1 --camera-model " + dir +
+              "/unit.yml --prior fleet --records " + small,
+          true);
+  ASSERT_EQ(r.status, 0) << r.out;
+  j = nlohmann::json::parse(r.out);
+  EXPECT_FALSE(j["prior"]["used"].get<bool>());
+  EXPECT_NE(j["prior"]["note"].get<std::string>().find("at least"), std::string::npos)
+      << j["prior"].dump();
+  EXPECT_TRUE(j["converged"].get<bool>());
+
+  // No store: refused before anything runs.
+  r = run("simulate --seed 5 --prior fleet");
+  EXPECT_NE(r.status, 0);
+  EXPECT_NE(r.out.find("needs 'records'"), std::string::npos) << r.out;
+}
+
 TEST(Cli, AStationRunOwnsItsDirectory) {
   const std::string dir = temp_dir("posecal_station_dir");
   CliRun r = run("station --cameras 'sim://?seed=1,sim://?seed=2' --out-dir " + dir + " --json", true);

@@ -1,14 +1,17 @@
 #include <gtest/gtest.h>
 
+#include <Eigen/Dense>
 #include <opencv2/calib3d.hpp>
 
-#include "calib/calibration.hpp"
-#include "common/error.hpp"
-#include "calib/metrics.hpp"
-#include "sim/synthetic.hpp"
 #include "board/views.hpp"
-#include "lens/reference_models.hpp"
+#include "calib/calibration.hpp"
+#include "calib/expected_error.hpp"
 #include "calib/information.hpp"
+#include "calib/metrics.hpp"
+#include "common/error.hpp"
+#include "lens/reference_models.hpp"
+#include "records/fleet.hpp"
+#include "sim/synthetic.hpp"
 
 using namespace posecal;
 
@@ -384,4 +387,210 @@ TEST(Calibration, FrameInformationIsTheSchurComplementOfOneView) {
     }
   }
   EXPECT_THROW(frame_information(m, T, board.corners(), std::vector<bool>(5, false)), Error);
+}
+
+// The prior on the intrinsics (calib/calibration.hpp, IntrinsicsPrior; docs/math.md, "The fleet
+// prior"): one frame suffices with it, the estimate lies between what the data and the prior say,
+// the covariance is the posterior's, a prior alone is a result without frames, and bad priors
+// are refused naming the cause. The fleet as such a prior: records/fleet.hpp, fleet_prior.
+namespace {
+
+// A prior centred on `mean` with independent standard deviations `sd` (every intrinsic).
+IntrinsicsPrior diagonal_prior(const CameraModel& mean, const std::vector<double>& sd,
+                               double noise_px) {
+  IntrinsicsPrior p;
+  p.mean = mean.params();
+  p.names = mean.param_names();
+  p.covariance = Eigen::MatrixXd::Zero(static_cast<int>(sd.size()), static_cast<int>(sd.size()));
+  for (size_t i = 0; i < sd.size(); ++i) p.covariance(i, i) = sd[i] * sd[i];
+  p.noise_px = noise_px;
+  return p;
+}
+
+// A C525 unit 3 px off in the principal point and 0.5% in the focal length.
+CameraModel offset_truth() {
+  CameraModel m = c525_reference_model();
+  m.params()[0] *= 1.005;
+  m.params()[1] *= 1.005;
+  m.params()[2] += 3;
+  m.params()[3] -= 3;
+  return m;
+}
+
+const std::vector<double> kFleetSd = {5, 5, 2, 2, 0.002, 0.01, 0.0003, 0.0003, 0.01};
+
+}  // namespace
+
+TEST(Prior, OneFrameSufficesAndThreeBringTheEstimateTowardsTheTruth) {
+  const CameraModel truth = offset_truth();
+  const CameraModel mean = c525_reference_model();
+  const Board target;
+  SyntheticCamera sc(truth, target, noisy(31));
+  const auto frames = observe(sc, random_board_views(41, 1, truth, target));
+  ASSERT_EQ(frames.size(), 1u);
+  // Without a prior one view cannot give nine intrinsics.
+  EXPECT_THROW(calibrate(frames, truth.size()), Error);
+  CalibrationOptions o;
+  o.prior = diagonal_prior(mean, kFleetSd, 0.05);
+  const CalibrationResult r = calibrate(frames, truth.size(), o);
+  EXPECT_EQ(r.rank_deficiency, 0);
+  EXPECT_TRUE(r.solver_converged()) << r.termination_message;
+  // One random view says little about the principal point; three bring the projection much
+  // closer to the truth than the fleet's mean is.
+  const auto three = observe(sc, random_board_views(45, 3, truth, target));
+  ASSERT_EQ(three.size(), 3u);
+  const CalibrationResult r3 = calibrate(three, truth.size(), o);
+  EXPECT_LT(ground_truth_error(truth, r3.model), 0.5 * ground_truth_error(truth, mean));
+  // Every parameter within 3 posterior standard deviations of the truth (at the prior's noise).
+  for (int i = 0; i < 9; ++i) {
+    const double sd = r.std_unit[i] * o.prior->noise_px;
+    EXPECT_LT(std::abs(r.model.params()[i] - truth.params()[i]), 3 * sd + 1e-12)
+        << truth.param_names()[i];
+    EXPECT_LE(sd, kFleetSd[i] * 1.0001)
+        << truth.param_names()[i];  // never less certain than the prior
+  }
+}
+
+TEST(Prior, ATightPriorHoldsTheMeanAndAVagueOneChangesNothing) {
+  const CameraModel truth = offset_truth();
+  const CameraModel mean = c525_reference_model();
+  const Board target;
+  SyntheticCamera sc(truth, target, noisy(32));
+  const auto frames = observe(sc, random_board_views(42, 8, truth, target));
+  ASSERT_EQ(frames.size(), 8u);
+  const CalibrationResult data = calibrate(frames, truth.size());
+  const double noise = std::sqrt(data.residual_variance);
+
+  CalibrationOptions tight;
+  std::vector<double> small;
+  for (double s : kFleetSd) small.push_back(s * 1e-4);
+  tight.prior = diagonal_prior(mean, small, noise);
+  const CalibrationResult t = calibrate(frames, truth.size(), tight);
+  for (int i = 0; i < 9; ++i) {
+    EXPECT_NEAR(t.model.params()[i], mean.params()[i], 3 * small[i]) << mean.param_names()[i];
+    // The posterior is the prior: its standard deviation (at the prior's noise) equals the prior's.
+    EXPECT_NEAR(t.std_unit[i] * noise, small[i], 0.01 * small[i]) << mean.param_names()[i];
+  }
+
+  CalibrationOptions vague;
+  std::vector<double> large;
+  for (double s : kFleetSd) large.push_back(s * 1e4);
+  vague.prior = diagonal_prior(mean, large, noise);
+  const CalibrationResult v = calibrate(frames, truth.size(), vague);
+  for (int i = 0; i < 9; ++i) {
+    EXPECT_NEAR(v.model.params()[i], data.model.params()[i], 0.01 * data.std_scaled[i])
+        << mean.param_names()[i];
+    EXPECT_NEAR(v.std_unit[i], data.std_unit[i], 0.01 * data.std_unit[i]) << mean.param_names()[i];
+  }
+}
+
+// The covariance is the posterior's: its information is the data's plus the prior's,
+// J^T J / noise^2 + Sigma_prior^-1 on the intrinsics (linear Gaussian model, at the solution).
+TEST(Prior, TheInformationIsTheDataPlusThePrior) {
+  const CameraModel truth = offset_truth();
+  const Board target;
+  SyntheticCamera sc(truth, target, noisy(33));
+  const auto frames = observe(sc, random_board_views(43, 6, truth, target));
+  ASSERT_EQ(frames.size(), 6u);
+  CalibrationOptions o;
+  o.prior = diagonal_prior(c525_reference_model(), kFleetSd, 0.05);
+  const CalibrationResult post = calibrate(frames, truth.size(), o);
+  // The data's information at the posterior's solution: a no-prior calibration warm-started
+  // there and stopped at once (one iteration) has the same Jacobian.
+  CalibrationOptions once;
+  once.max_iterations = 1;
+  const WarmStart ws{post.model, post.poses};
+  const CalibrationResult data = calibrate(frames, truth.size(), once, &ws);
+  const double s2 = o.prior->noise_px * o.prior->noise_px;
+  const Eigen::MatrixXd info_data =
+      data.covariance.topLeftCorner(9, 9).inverse() / s2;  // marginal over poses
+  Eigen::MatrixXd info_prior = o.prior->covariance.inverse();
+  const Eigen::MatrixXd expected = (info_data + info_prior).inverse();
+  const Eigen::MatrixXd got = post.covariance.topLeftCorner(9, 9) * s2;
+  for (int i = 0; i < 9; ++i)
+    EXPECT_NEAR(std::sqrt(got(i, i)), std::sqrt(expected(i, i)), 0.02 * std::sqrt(expected(i, i)))
+        << truth.param_names()[i];
+}
+
+TEST(Prior, ThePriorAloneIsAResultWithoutFrames) {
+  const CameraModel mean = c525_reference_model();
+  CalibrationOptions o;
+  o.prior = diagonal_prior(mean, kFleetSd, 0.1);
+  const CalibrationResult r = prior_result(mean.size(), o);
+  EXPECT_EQ(r.model.params(), mean.params());
+  EXPECT_TRUE(r.poses.empty());
+  for (int i = 0; i < 9; ++i) EXPECT_NEAR(r.std_scaled[i], kFleetSd[i], 1e-9 * kFleetSd[i]);
+  const ExpectedError e = expected_error(r);
+  EXPECT_GT(e.rms_px, 1.0);  // 2 px of principal point alone
+  EXPECT_TRUE(std::isfinite(e.p90_px));
+  // A fixed parameter: the others given it, and it has no variance.
+  o.fixed = {"k3"};
+  const CalibrationResult f = prior_result(mean.size(), o);
+  EXPECT_EQ(f.std_unit[8], 0.0);
+  EXPECT_TRUE(f.fixed[8]);
+}
+
+TEST(Prior, BadPriorsAreRefusedNamingTheCause) {
+  const CameraModel mean = c525_reference_model();
+  const Board target;
+  SyntheticCamera sc(mean, target, noisy(34));
+  const auto frames = observe(sc, random_board_views(44, 1, mean, target));
+  ASSERT_EQ(frames.size(), 1u);
+  auto refused = [&](const CalibrationOptions& o, const std::string& says) {
+    try {
+      calibrate(frames, mean.size(), o);
+      ADD_FAILURE() << "accepted; expected: " << says;
+    } catch (const Error& e) {
+      EXPECT_NE(std::string(e.what()).find(says), std::string::npos) << e.what();
+    }
+  };
+  CalibrationOptions o;
+  o.prior = diagonal_prior(mean, kFleetSd, 0.1);
+  o.prior->mean.pop_back();
+  refused(o, "the mean has 8 values");
+  o.prior = diagonal_prior(mean, kFleetSd, 0.1);
+  o.prior->covariance(0, 0) = -1;
+  refused(o, "not positive definite");
+  o.prior = diagonal_prior(mean, kFleetSd, 0.1);
+  o.prior->covariance(2, 2) = NAN;
+  refused(o, "not finite");
+  o.prior = diagonal_prior(mean, kFleetSd, 0.0);
+  refused(o, "noise_px");
+  o.prior = diagonal_prior(mean, kFleetSd, 0.1);
+  o.prior->names[8] = "k9";
+  refused(o, "unknown parameter 'k9'");
+  // A prior without k3 while k3 is free.
+  o.prior = diagonal_prior(mean, kFleetSd, 0.1);
+  o.prior->names.pop_back();
+  o.prior->covariance = o.prior->covariance.topLeftCorner(8, 8).eval();
+  refused(o, "does not constrain the free parameter k3");
+  o.fixed = {"k3"};
+  EXPECT_NO_THROW(calibrate(frames, mean.size(), o));
+  o.fixed.clear();
+  o.prior = diagonal_prior(mean, kFleetSd, 0.1);
+  o.prior->image_size = cv::Size(1920, 1080);
+  refused(o, "the prior is for 1920x1080 images, these are 1280x720");
+}
+
+// The fleet as a prior: the units' mean, the covariance of those that vary.
+TEST(Prior, TheFleetPriorIsTheUnitsMeanAndCovariance) {
+  std::vector<FleetUnit> units;
+  cv::RNG rng(5);
+  for (int i = 0; i < 20; ++i) {
+    std::vector<double> v = c525_reference_model().params();
+    for (int k = 0; k < 8; ++k) v[k] += 0.01 * (1 + k) * rng.gaussian(1);
+    units.push_back(
+        {std::to_string(i), std::to_string(1000 + i), v});  // k3 constant: fixed in the fleet
+  }
+  const IntrinsicsPrior p = fleet_prior(LensModel::kOpenCV5, units, 0.2);
+  ASSERT_EQ(p.names.size(), 8u);
+  EXPECT_EQ(p.names.back(), "p2");
+  EXPECT_NEAR(p.mean[8], c525_reference_model().params()[8], 1e-15);
+  double m0 = 0;
+  for (const auto& u : units) m0 += u.values[0] / 20;
+  EXPECT_NEAR(p.mean[0], m0, 1e-9);
+  EXPECT_EQ(p.covariance.rows(), 8);
+  EXPECT_EQ(p.noise_px, 0.2);
+  units.resize(10);
+  EXPECT_THROW(fleet_prior(LensModel::kOpenCV5, units, 0.2), Error);  // 10 units for 8 parameters
 }

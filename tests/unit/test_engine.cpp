@@ -567,3 +567,70 @@ TEST(Engine, ChooseCandidateFreeOrServingTheTarget) {
   EXPECT_THROW(choose_candidate({1, 2}, {1, 2}, 0, false), Error);
   EXPECT_THROW(choose_candidate({1, 2}, {1, 2}, 3, true), Error);
 }
+
+// With a prior: no bootstrap and no initial poses (waiting_for_board > refining at the first
+// board), one keyframe gives a calibration, the stop is accuracy_px, and a journal of the run
+// restores it bit for bit.
+TEST(Engine, APriorStartsRefiningAtOnceAndRestores) {
+  RenderOptions ro;
+  ro.noise_sigma = 1.0;
+  Rig rig(ro);
+  EngineOptions o;
+  o.robot = true;
+  IntrinsicsPrior prior;
+  prior.mean = rig.truth.params();
+  prior.mean[2] += 1.0;  // the fleet's mean is not this unit
+  prior.mean[0] *= 1.002;
+  prior.mean[1] *= 1.002;
+  prior.names = rig.truth.param_names();
+  const std::vector<double> sd = {3, 3, 1.5, 1.5, 0.002, 0.01, 0.0003, 0.0003, 0.01};
+  prior.covariance = Eigen::MatrixXd::Zero(9, 9);
+  for (int i = 0; i < 9; ++i) prior.covariance(i, i) = sd[i] * sd[i];
+  prior.noise_px = 0.05;
+  o.calibration.prior = prior;
+  o.accuracy_px = 1.0;
+  CalibrationEngine e(rig.truth.size(), o);
+  rig.listen(e);
+  EXPECT_EQ(e.estimate().params(), prior.mean);
+  EXPECT_FALSE(e.target());
+  present_start_view(e, rig);
+  ASSERT_TRUE(e.target());
+  EXPECT_EQ(e.state(), EngineState::kRefining);
+  EXPECT_GE(e.target_parameter(), 0);
+  EXPECT_EQ(e.result(), nullptr);  // no calibration before a keyframe
+  std::vector<KeyframeRecord> journal;
+  int guard = 0;
+  while (e.state() != EngineState::kConverged && e.state() != EngineState::kFailed &&
+         guard++ < 40) {
+    ASSERT_TRUE(e.target());
+    const EngineState before = e.state();
+    if (hold_until_capture(e, rig.camera, e.target()->T_cam_board, true, 12)) {
+      journal.push_back(e.keyframe_record(e.keyframes() - 1, before));
+      if (e.keyframes() == 1) {
+        EXPECT_NE(e.result(), nullptr);  // one keyframe suffices
+      }
+    }
+  }
+  EXPECT_EQ(e.state(), EngineState::kConverged) << e.failure_reason();
+  EXPECT_LE(e.expected_error()->p90_px, 1.0);
+  EXPECT_LE(e.keyframes(), 5);
+  const auto t = rig.transitions();
+  ASSERT_EQ(t.size(), 2u);
+  EXPECT_EQ(t[0], "waiting_for_board>refining");
+  EXPECT_EQ(t[1], "refining>converged");
+  EXPECT_EQ(rig.count(EngineEvent::Kind::kCalibrated), e.keyframes());
+  for (int i = 0; i < 9; ++i) {
+    EXPECT_NEAR(e.result()->model.params()[i], rig.truth.params()[i],
+                4 * e.result()->std_scaled[i] + 1e-9)
+        << rig.truth.param_names()[i];
+  }
+  // The journal restores the same calibration, bit for bit; without the prior it is refused.
+  CalibrationEngine again(rig.truth.size(), o);
+  EXPECT_TRUE(again.restore(journal));
+  EXPECT_EQ(again.estimate().params(), e.estimate().params());
+  EXPECT_EQ(again.state(), EngineState::kConverged);
+  EngineOptions plain = o;
+  plain.calibration.prior.reset();
+  CalibrationEngine without(rig.truth.size(), plain);
+  EXPECT_THROW(without.restore(journal), Error);
+}

@@ -382,7 +382,7 @@ class Context(_Handle):
         pose_candidates, lock_settings, max_tilt_deg, fixed, convergence_measure,
         measured_convergence, candidate_score, view_candidates, view_must_serve_target,
         board_timeout_s, accuracy_px, journal, journal_images, resume, spec, records, records_spool,
-        fleet_outlier_probability, run_id, station_id, operator_id, lens_id."""
+        fleet_outlier_probability, prior, run_id, station_id, operator_id, lens_id."""
         return Session(self, uri, **config)
 
 
