@@ -155,6 +155,12 @@ const std::map<std::string, cv::Mat>& clutter_frames() {
       const Pose p = board_pose_at(board, Eigen::Vector3d(0.01, -0.005, 0.40), 0.7, 0.4, 0.2);
       const std::string kind = std::string(spec).substr(0, std::string(spec).find(':'));
       f[kind + "_on_checkerboard10"] = render_in_front_of(sc, p, f["checkerboard10"]);
+      if (kind == "chessboard") {
+        // The same board farther away: squares of about 32 px, too small for the quarter-size
+        // search (docs/performance.md, "Busy frames").
+        const Pose far = board_pose_at(board, Eigen::Vector3d(0.01, -0.005, 0.80), 0.4, 0.3, 0.2);
+        f[kind + "32px_on_checkerboard10"] = render_in_front_of(sc, far, f["checkerboard10"]);
+      }
     }
     return f;
   }();
