@@ -1,14 +1,17 @@
 // The fleet: what the passed calibrations of one camera model and lens id say about the next
-// unit (issue 15, item 4). This file holds the outlier test; the fleet prior is not built yet.
+// unit (issue 15, item 4): the outlier test and the fleet prior.
 //
 // Given n earlier units' intrinsics x_1..x_n (one run per serial) with sample mean m and sample
 // covariance S, a new unit x of the same population is an outlier when
-//   d^2 = (x - m)^T S^-1 (x - m)  >  (n + 1) / n * p (n - 1) / (n - p) * F^-1(1 - alpha; p, n - p),
+//   d^2 = (x - m)^T S^-1 (x - m)  >  (n + 1) / n * p (n - 1) / (n - p) * F^-1(1 - alpha/2; p, n -
+//   p),
 // the exact prediction bound for a normal population whose mean and covariance are estimated
-// from the n units (Hotelling's T^2 of one new observation): a normal unit is flagged with
-// probability alpha, whatever n. p counts the parameters that vary in the fleet. The
-// parameters responsible are those whose own standardised deviation (x_i - m_i) / sqrt(S_ii)
-// is largest (docs/math.md, "Fleet outliers").
+// from the n units (Hotelling's T^2 of one new observation), or when one parameter's
+// standardised deviation z_i = (x_i - m_i) / sqrt(S_ii) exceeds Student's t prediction bound at
+// alpha / (2p) (Bonferroni), which flags a single parameter far off sooner than the joint
+// test: a normal unit is flagged with probability at most alpha, whatever n. p counts the
+// parameters that vary in the fleet. The parameters responsible are those of largest |z_i|
+// (docs/math.md, "Fleet outliers").
 //
 // The fleet prior (fleet_prior) is the same population as a Gaussian prior on the next unit's
 // intrinsics: its mean is where a session starts, its covariance the prior term of the bundle
@@ -45,9 +48,11 @@ struct FleetPosition {
   int units = 0;
   double distance = 0;   // Mahalanobis distance d
   double threshold = 0;  // d above which the unit is flagged
-  double alpha = 0;      // the probability that a normal unit is flagged
+  // |z| of one parameter (deviations) above which the unit is flagged.
+  double parameter_threshold = 0;
+  double alpha = 0;  // at most the probability that a normal unit is flagged (by either test)
   bool outlier = false;
-  // Every parameter with its standardised deviation, largest |z| first.
+  // Every parameter with its standardised deviation z, largest |z| first.
   std::vector<std::pair<std::string, double>> deviations;
 };
 

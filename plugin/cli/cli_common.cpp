@@ -230,9 +230,18 @@ void print_verdict(const Json& j) {
   }
   if (j.contains("fleet") && j["fleet"].is_object() &&
       j["fleet"].value("outlier", Json()).is_boolean() && j["fleet"]["outlier"].get<bool>()) {
-    std::printf("FLEET OUTLIER: distance %.2f above %.2f among %d units\n",
-                j["fleet"].value("distance", 0.0), j["fleet"].value("threshold", 0.0),
-                j["fleet"].value("units", 0));
+    // Either test flags (records/fleet.hpp): the distance against its bound, the parameter
+    // most off against the one-parameter bound.
+    const Json& f = j["fleet"];
+    const Json dev = f.value("deviations", Json::array());
+    const bool named = !dev.empty() && dev[0].is_object() && dev[0].value("z", Json()).is_number();
+    std::printf(
+        "FLEET OUTLIER: distance %.2f (bound %.2f), %s z %+.1f (bound %.2f), among %d "
+        "units\n",
+        f.value("distance", 0.0), f.value("threshold", 0.0),
+        named ? dev[0].value("param", std::string("?")).c_str() : "?",
+        named ? dev[0]["z"].get<double>() : 0.0, f.value("parameter_threshold", 0.0),
+        f.value("units", 0));
   }
   // The record (--records), where there is one to speak of.
   if (j.contains("records_note") && j["records_note"].is_string()) {

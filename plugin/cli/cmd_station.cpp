@@ -248,12 +248,17 @@ void print_station_text(const Json& sum, const std::string& sum_path) {
     if (fleet.is_object() && fleet.contains("outlier") && fleet["outlier"].is_boolean() &&
         fleet["outlier"].get<bool>()) {
       const Json dev = fleet.value("deviations", Json::array());
-      std::printf("%-40s FLEET OUTLIER: distance %.2f over %.2f (%d units)%s\n", "",
+      // Either test flags (records/fleet.hpp): the distance and the parameter most off, each
+      // against its bound.
+      char most[96] = "";
+      if (!dev.empty() && dev[0].is_object()) {
+        std::snprintf(most, sizeof most, ", most off: %s z %+.1f (bound %.2f)",
+                      dev[0].value("param", std::string("?")).c_str(), num_or(dev[0], "z", 0),
+                      num_or(fleet, "parameter_threshold", -1));
+      }
+      std::printf("%-40s FLEET OUTLIER: distance %.2f (bound %.2f; %d units)%s\n", "",
                   num_or(fleet, "distance", -1), num_or(fleet, "threshold", -1),
-                  fleet.value("units", 0),
-                  dev.empty() || !dev[0].is_object()
-                      ? ""
-                      : (", most off: " + dev[0].value("param", std::string("?"))).c_str());
+                  fleet.value("units", 0), most);
     }
   }
   std::printf("%d of %d cameras converged in %.1f s%s; summary in %s\n",

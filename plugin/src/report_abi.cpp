@@ -52,10 +52,12 @@ std::string fleet_position_text(const Json& result) {
                                     ? f["note"].get<std::string>()
                                     : std::string("no note"));
   }
-  char buf[160];
-  std::snprintf(buf, sizeof buf, "Mahalanobis distance %.2f, bound %.2f (%d units, alpha %g)",
-                num("distance"), num("threshold"), static_cast<int>(num("units")),
-                num("probability"));
+  char buf[200];
+  std::snprintf(buf, sizeof buf,
+                "Mahalanobis distance %.2f, bound %.2f; one parameter's |z| bound %.2f (%d units, "
+                "alpha %g)",
+                num("distance"), num("threshold"), num("parameter_threshold"),
+                static_cast<int>(num("units")), num("probability"));
   std::string out =
       std::string(f["outlier"].get<bool>() ? "OUTLIER: " : "within the fleet: ") + buf;
   if (f.contains("deviations") && f["deviations"].is_array() && !f["deviations"].empty()) {

@@ -343,8 +343,8 @@ std::vector<FleetUnit> fleet_units(const std::string& url, const std::string& mo
 
 // Where the result lies among the passed units of the same camera model and lens id in the
 // session's record store (records/fleet.hpp): {"units", "distance", "threshold",
-// "probability", "outlier", "deviations": [{"param", "z"}, ...] largest first, "note"}.
-// Too few units or a store that cannot be read give "outlier": null and the note.
+// "parameter_threshold", "probability", "outlier", "deviations": [{"param", "z"}, ...] largest
+// first, "note"}. Too few units or a store that cannot be read give "outlier": null and the note.
 Json fleet_json(posecal_session* s, const CalibrationResult& r) {
   Json j = {{"units", 0}, {"outlier", nullptr}, {"probability", s->fleet_alpha}};
   try {
@@ -364,6 +364,7 @@ Json fleet_json(posecal_session* s, const CalibrationResult& r) {
                       : "estimate";
     j["distance"] = abi::number(pos.distance);
     j["threshold"] = abi::number(pos.threshold);
+    j["parameter_threshold"] = abi::number(pos.parameter_threshold);
     j["outlier"] = pos.outlier;
     Json dev = Json::array();
     for (const auto& [name, z] : pos.deviations)

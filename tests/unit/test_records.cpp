@@ -461,8 +461,33 @@ TEST(Fleet, NormalUnitsAreFlaggedAtTheStatedRate) {
     for (int i = 0; i < 50; ++i, ++tries)
       flagged += fleet_position(fleet, kNames, draw_unit(rng), 0.05).outlier;
   }
+  // The joint test at alpha / 2 and the nine parameter tests at alpha / 18 each: at most alpha
+  // in all (the union bound), at least the joint test's alpha / 2.
   const double rate = static_cast<double>(flagged) / tries;
-  EXPECT_NEAR(rate, 0.05, 0.006) << flagged << " of " << tries;  // ~4 standard errors
+  std::printf("normal units flagged at alpha 0.05: %d of %d (%.4f)\n", flagged, tries, rate);
+  EXPECT_LE(rate, 0.05 + 0.006) << flagged << " of " << tries;  // ~4 standard errors
+  EXPECT_GE(rate, 0.025 - 0.006) << flagged << " of " << tries;
+}
+
+// A single parameter far off is caught by its own test before the joint distance crosses its
+// bound: cx 6 of the fleet's standard deviations off is d 7.3 < 8.5, but |z| 6 > 4.8.
+TEST(Fleet, OneParameterFarOffIsFlaggedByItsOwnTest) {
+  cv::RNG rng(13);
+  std::vector<FleetUnit> units;
+  for (int i = 0; i < 30; ++i) units.push_back({std::to_string(i), "", draw_unit(rng)});
+  const FleetStatistics fleet = fleet_statistics(kNames, units);
+  const FleetPosition normal = fleet_position(fleet, kNames, fleet.mean, 0.001);
+  EXPECT_FALSE(normal.outlier);
+  std::vector<double> unit = fleet.mean;
+  unit[2] += 6 * std::sqrt(fleet.covariance[2 * kNames.size() + 2]);
+  const FleetPosition pos = fleet_position(fleet, kNames, unit, 0.001);
+  std::printf("cx 6 sigma off: d %.2f (bound %.2f), z %.2f (bound %.2f)\n", pos.distance,
+              pos.threshold, pos.deviations[0].second, pos.parameter_threshold);
+  EXPECT_LT(pos.distance, pos.threshold);
+  EXPECT_GT(pos.parameter_threshold, 4.5);
+  EXPECT_LT(pos.parameter_threshold, 5.5);
+  EXPECT_TRUE(pos.outlier);
+  EXPECT_EQ(pos.deviations[0].first, "cx");
 }
 
 TEST(Fleet, AShiftedUnitIsFlaggedNamingTheParameter) {
