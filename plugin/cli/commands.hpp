@@ -16,6 +16,7 @@ Command add_board(CLI::App* app);
 Command add_list(CLI::App* app);
 Command add_records(CLI::App* app);  // list, show, resolve, export, import
 Command add_report(CLI::App* app);   // the calibration report (HTML, PDF)
+Command add_serve(CLI::App* app);    // the station as an HTTP server (station_server.hpp)
 
 // The text of `posecal version` and `posecal --version`.
 std::string version_text();

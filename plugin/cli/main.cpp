@@ -41,6 +41,7 @@ Commands add_commands(CLI::App* app) {
   commands["list"] = add_list(app);
   commands["records"] = add_records(app);
   commands["report"] = add_report(app);
+  commands["serve"] = add_serve(app);
   app->add_subcommand("version", "print the version and the ABI version");
   commands["version"] = [] {
     std::printf("%s\n", version_text().c_str());
