@@ -47,7 +47,12 @@ const char* serve_page_html() {
 <div id="grid"></div>
 <script>
 "use strict";
-const token = new URLSearchParams(location.search).get("token");
+const params = new URLSearchParams(location.search);
+const token = params.get("token");
+// ?view=snapshots: a picture a second (frame.jpg) instead of the MJPEG stream, for clients that
+// wait for every request to end (a headless browser's screenshot).
+const snapshots = params.get("view") === "snapshots";
+let tick = 0;
 function withToken(url) {
   return token ? url + (url.includes("?") ? "&" : "?") + "token=" + encodeURIComponent(token) : url;
 }
@@ -65,7 +70,8 @@ function tile(s) {
   let t = tiles.get(s.id);
   if (!t) {
     t = {root: make("div", "tile")};
-    t.img = make("img"); t.img.alt = s.camera; t.img.src = withToken("/api/sessions/" + s.id + "/stream.mjpg");
+    t.img = make("img"); t.img.alt = s.camera;
+    if (!snapshots) t.img.src = withToken("/api/sessions/" + s.id + "/stream.mjpg");
     t.info = make("div", "info");
     t.title = make("div"); t.state = make("div", "state"); t.detail = make("div");
     t.bar = make("div", "bar"); t.fill = make("div"); t.bar.appendChild(t.fill);
@@ -78,14 +84,15 @@ function tile(s) {
     document.getElementById("grid").appendChild(t.root);
     tiles.set(s.id, t);
   }
+  if (snapshots && !(s.done && t.img.src)) t.img.src = withToken("/api/sessions/" + s.id + "/frame.jpg?n=" + tick);
   text(t.title, s.id + "  " + s.camera);
   const state = s.error ? "error: " + s.error : s.interrupted ? "stopped" : s.state;
   text(t.state, state).className = "state " + (s.converged ? "converged" : s.error ? "error" :
                                                s.finished ? "failed" : "");
   const max = (s.max_keyframes || 20);
   t.fill.style.width = Math.min(100, 100 * s.keyframes / max) + "%";
-  let d = s.keyframes + " keyframes";
-  if (s.expected_error_px !== undefined) d += ", expected error " + Number(s.expected_error_px).toFixed(3) + " px";
+  let d = s.keyframes + (s.keyframes === 1 ? " keyframe" : " keyframes");
+  if (s.expected_error_px != null) d += ", expected error " + Number(s.expected_error_px).toFixed(3) + " px";
   if (s.verdict) d += ", verdict " + s.verdict;
   if (!s.finished && s.guidance) d += " \u2014 " + s.guidance;
   text(t.detail, d);
@@ -94,6 +101,7 @@ function say(m) { text(document.getElementById("message"), m); }
 async function refresh() {
   try {
     const list = await api("GET", "/api/sessions");
+    ++tick;
     const ids = new Set(list.map(s => s.id));
     for (const [id, t] of tiles) if (!ids.has(id)) { t.img.src = ""; t.root.remove(); tiles.delete(id); }
     list.forEach(tile);

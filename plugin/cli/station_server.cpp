@@ -90,6 +90,7 @@ void must(posecal_status s) {
 // A session the server steps.
 struct Served {
   std::string id, camera;
+  int order = 0;  // the n of id "sn"
   Json config;
   posecal_session* session = nullptr;
   std::mutex abi;                 // one ABI call on the session at a time
@@ -300,7 +301,8 @@ struct StationServer::Impl {
       must(posecal_session_set_callback(s->session, &Impl::on_event, &s->callback_user));
       refresh(s.get());
       std::lock_guard<std::mutex> lk(sessions_mu);
-      s->id = "s" + std::to_string(++opened);
+      s->order = ++opened;
+      s->id = "s" + std::to_string(s->order);
       s->stepper = std::thread([this, raw = s.get()] { step_loop(raw); });
       sessions[s->id] = s;
     } catch (...) {
@@ -505,6 +507,9 @@ struct StationServer::Impl {
         std::lock_guard<std::mutex> lk(sessions_mu);
         for (const auto& [id, s] : sessions) all.push_back(s);
       }
+      std::sort(all.begin(), all.end(), [](const auto& a, const auto& b) {
+        return a->order < b->order;  // opened first, first
+      });
       Json list = Json::array();
       for (const auto& s : all) list.push_back(summary(s.get()));
       send_json(res, list);

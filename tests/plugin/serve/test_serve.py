@@ -7,6 +7,7 @@ Needs POSECAL_CLI (the posecal binary); run by ctest (plugin_serve).
 """
 import json
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -298,3 +299,40 @@ def test_sigterm_closes_running_sessions_and_exits_0():
     s.stop()
     assert s.proc.returncode == 0
     assert time.time() - t0 < 15
+
+
+def test_page_in_chromium_shows_four_live_views(server, tmp_path):
+    """The page during a four-camera run, screenshotted by headless Chromium: four tiles, each
+    a live picture (a large region of scene pixels) with the overlay's yellow status text.
+    The page's snapshot view: a headless screenshot waits until every request has ended, which
+    the MJPEG streams only do when their session finishes."""
+    chromium = shutil.which("chromium")
+    assert chromium, "chromium is not installed (apt-get install --no-install-recommends chromium)"
+    for seed in (21, 22, 23, 24):
+        status, _ = server.json("POST", "/api/sessions",
+                                {"camera": f"sim://?seed={seed}", "config": {"max_keyframes": 30}})
+        assert status == 201
+    time.sleep(0.5)
+    shot = tmp_path / "page.png"
+    r = subprocess.run([chromium, "--headless", "--no-sandbox", "--disable-gpu",
+                        "--disable-dev-shm-usage", "--hide-scrollbars", "--window-size=1400,1000",
+                        "--virtual-time-budget=4000", f"--screenshot={shot}",
+                        server.base + "/?view=snapshots"],
+                       capture_output=True, text=True, timeout=120)
+    assert shot.exists(), r.stderr[-2000:]
+    out = os.environ.get("POSECAL_SERVE_SCREENSHOT")
+    if out:
+        shutil.copy(shot, out)
+    img = cv2.imread(str(shot), cv2.IMREAD_COLOR)
+    assert img is not None and img.shape[1] == 1400
+    # The page is dark (#1d2126, tiles #2a3038); a live view is a large region of scene pixels.
+    gray = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+    n, labels, stats, _ = cv2.connectedComponentsWithStats((gray > 60).astype(np.uint8))
+    views = [i for i in range(1, n) if stats[i, cv2.CC_STAT_AREA] > 30000]
+    assert len(views) >= 4, sorted(stats[1:, cv2.CC_STAT_AREA])[-6:]
+    b, g, r_ = [img[:, :, i].astype(int) for i in range(3)]
+    yellow = (r_ > 180) & (g > 180) & (b < 100)
+    for i in views[:4]:
+        x, y, w, h = stats[i, :4]
+        box = yellow[y:y + h, x:x + w]
+        assert box.sum() > 20, f"no overlay text in the view at {x},{y} ({w}x{h})"
