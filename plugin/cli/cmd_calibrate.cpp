@@ -25,6 +25,7 @@ struct CalibrateOptions {
   // --camera
   std::string guide = "overlay";
   bool no_window = false;
+  double result_seconds = 15;  // the window's result screen: shown until a key or this long
   int timeout_ms = 2000;
   double max_seconds = 1800, reply_timeout_s = 600;
   // Also --images' --target: one flag, the session key's (the table's doc describes it).
@@ -143,11 +144,17 @@ LiveRun run_live(posecal_session* s, const CalibrateOptions& o, bool robot) {
     } else if (!o.json && status["guidance"].is_string() &&
                status["guidance"].get<std::string>() != last_guidance) {
       last_guidance = status["guidance"].get<std::string>();
-      std::fprintf(stderr, "[%d keyframes] %s\n", status["keyframes"].get<int>(),
-                   last_guidance.c_str());
+      // Headless there is no overlay to align with: say so rather than refer to it.
+      std::string said = last_guidance;
+      const size_t at = window.enabled() ? std::string::npos : said.find("the overlay");
+      if (at != std::string::npos) {
+        said.replace(at, 11, "the target (not shown without a window; posecal serve shows it)");
+      }
+      std::fprintf(stderr, "[%d keyframes] %s\n", status["keyframes"].get<int>(), said.c_str());
     }
   }
   run.wall_ms = ms_since(t0);
+  if (!run.interrupted && !run.stopped_by_user) window.hold_result(s, o.result_seconds);
   return run;
 }
 
@@ -229,6 +236,11 @@ void add_camera_options(CLI::App* cmd, CalibrateOptions* o) {
       ->check(CLI::IsMember({"overlay", "stdio"}))
       ->group(group);
   cmd->add_flag("--no-window", o->no_window, "no live window even with a display")->group(group);
+  cmd->add_option("--result-seconds", o->result_seconds,
+                  "the window shows the result until a key is pressed or this many seconds "
+                  "(default 15; 0: closes at once)")
+      ->check(CLI::Range(0.0, 3600.0))
+      ->group(group);
   cmd->add_option("--timeout-ms", o->timeout_ms,
                   "wait for a frame at most this long (default: 2000)")
       ->check(in_range(0, 600000))

@@ -12,6 +12,8 @@
 #include <cstdlib>
 #include <cstring>
 
+#include "interrupt.hpp"
+
 #ifdef POSECAL_CLI_HIGHGUI
 #include <xcb/xcb.h>
 
@@ -161,7 +163,8 @@ bool LiveWindow::show(posecal_session* s, const Json& status) {
   try {
     const cv::Mat m(h, w, CV_8UC3, pixels_.data());
     if (!opened_) {
-      cv::namedWindow(kWindowName, cv::WINDOW_NORMAL);
+      // WINDOW_GUI_NORMAL: no Qt toolbar (zoom and pan buttons) across the picture.
+      cv::namedWindow(kWindowName, cv::WINDOW_NORMAL | cv::WINDOW_GUI_NORMAL);
       cv::resizeWindow(kWindowName, std::min(w, 1280), std::min(h, 1280) * std::min(w, 1280) / w);
       opened_ = true;
     }
@@ -178,6 +181,29 @@ bool LiveWindow::show(posecal_session* s, const Json& status) {
   (void)status;
 #endif
   return true;
+}
+
+void LiveWindow::hold_result(posecal_session* s, double seconds) {
+#ifdef POSECAL_CLI_HIGHGUI
+  if (!enabled_ || !opened_ || seconds <= 0) return;
+  try {
+    if (!show(s, fetch_status(s))) return;
+    std::fprintf(stderr,
+                 "posecal calibrate: the result stays on screen; press a key to close "
+                 "(or wait %.0f s)\n",
+                 seconds);
+    const auto t0 = Clock::now();
+    while (ms_since(t0) < seconds * 1000 && !interrupt_requested()) {
+      if (cv::waitKey(100) >= 0) break;
+      if (cv::getWindowProperty(kWindowName, cv::WND_PROP_VISIBLE) < 1) break;
+    }
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "posecal calibrate: no result screen (%s)\n", e.what());
+  }
+#else
+  (void)s;
+  (void)seconds;
+#endif
 }
 
 }  // namespace posecal::cli

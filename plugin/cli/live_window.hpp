@@ -27,6 +27,10 @@ class LiveWindow {
   // Shows the last frame with the guidance overlay. Returns false when the user closed the
   // window or pressed q/Esc.
   bool show(posecal_session* s, const Json& status);
+  // Once the calibration has finished: the result screen (the overlay's verdict, expected error
+  // and the keyframes' coverage) stays until a key, the window is closed, a signal, or
+  // `seconds`. Nothing if the window was never opened.
+  void hold_result(posecal_session* s, double seconds);
 
  private:
   bool enabled_ = false;

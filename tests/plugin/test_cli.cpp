@@ -766,8 +766,11 @@ TEST(Cli, LiveCalibrationPrintsJsonEvents) {
 // DISPLAY where no X server answers: headless instead of the toolkit ending the process.
 TEST(Cli, LiveWindowOffscreenAndUnreachableDisplay) {
   // Four keyframes at most: the window shows every frame until the run ends (exit code 3).
-  CliRun r = run("calibrate --camera 'sim://?seed=15' --max-keyframes 4 --json", true,
-                 "DISPLAY=:97 POSECAL_WINDOW=force QT_QPA_PLATFORM=offscreen");
+  // The result screen stays --result-seconds (no key is pressed offscreen).
+  const auto t0 = std::chrono::steady_clock::now();
+  CliRun r = run("calibrate --camera 'sim://?seed=15' --max-keyframes 4 --result-seconds 2 --json",
+                 true, "DISPLAY=:97 POSECAL_WINDOW=force QT_QPA_PLATFORM=offscreen");
+  EXPECT_GE(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(), 2.0);
   ASSERT_EQ(r.status, 3) << r.out;
   EXPECT_EQ(nlohmann::json::parse(lines_of(r.out).back())["event"], "result");
   // No X server at :97: headless, with a message (a folder of three frames: over at once).
