@@ -86,8 +86,10 @@ function tile(s) {
   }
   if (snapshots && !(s.done && t.img.src)) t.img.src = withToken("/api/sessions/" + s.id + "/frame.jpg?n=" + tick);
   text(t.title, s.id + "  " + s.camera);
-  const state = s.error ? "error: " + s.error : s.interrupted ? "stopped" : s.state;
-  text(t.state, state).className = "state " + (s.converged ? "converged" : s.error ? "error" :
+  const state = s.error ? "error: " + s.error : s.interrupted ? "stopped" :
+                !s.camera_connected ? "camera disconnected (waiting for it to come back)" : s.state;
+  text(t.state, state).className = "state " + (s.converged ? "converged" :
+                                               s.error || !s.camera_connected ? "error" :
                                                s.finished ? "failed" : "");
   const max = (s.max_keyframes || 20);
   t.fill.style.width = Math.min(100, 100 * s.keyframes / max) + "%";

@@ -334,6 +334,7 @@ struct StationServer::Impl {
               {"keyframes", field(st, "keyframes", 0)},
               {"guidance", field(st, "guidance", std::string())},
               {"done", s->done},
+              {"camera_connected", field(st, "camera_connected", true)},
               {"error", s->error.empty() ? Json() : Json(s->error)}};
     for (const char* k : {"expected_error_px", "expected_error_p90_px"})
       if (st.contains(k)) j[k] = st[k];
