@@ -211,6 +211,11 @@ Board::~Board() = default;
 Board::Board(const Board&) = default;
 Board& Board::operator=(const Board&) = default;
 
+int Board::marker_grid_cells() const {
+  if (spec_.type != BoardType::kCharuco) return 0;
+  return impl_->dictionary->markerSize + 2 * impl_->params->markerBorderBits;
+}
+
 cv::Size2d Board::board_size_m() const {
   const double s = spec_.square_length_m;
   if (spec_.type == BoardType::kCharuco) return {spec_.cols * s, spec_.rows * s};
@@ -551,14 +556,15 @@ void check_detect_size(const cv::Mat& image) {
 // Chessboard: OpenCV's detector, on a shrunk copy for large frames; the corners are refined at
 // full resolution with a window from the corner spacing (wide enough to reach the saddle from
 // the shrunk copy's estimate, which is off by up to about half the factor).
-std::vector<cv::Point2f> Board::detect_chessboard(const cv::Mat& gray,
+std::vector<cv::Point2f> Board::detect_chessboard(const cv::Mat& gray, const Search& where,
                                                   const DetectorOptions& options) const {
   std::vector<cv::Point2f> pts;
   const cv::Size pattern(spec_.cols, spec_.rows);
   const int flags =
       cv::CALIB_CB_ADAPTIVE_THRESH | cv::CALIB_CB_NORMALIZE_IMAGE | cv::CALIB_CB_FAST_CHECK;
-  int k = search_factor(gray, options);
-  cv::Mat search = k > 1 ? shrink_for_search(gray, k) : gray;
+  const cv::Mat area = where.region.empty() ? gray : gray(where.region);
+  int k = std::max(where.shrink, search_factor(area, options));
+  cv::Mat search = k > 1 ? shrink_for_search(area, k) : area;
   const int cap = quad_cap(options, (spec_.cols + 1) * (spec_.rows + 1));
   // A busy frame is searched on a copy shrunk twice as much. (A search image under 32 px a side
   // has no room for a board at half size; it is cheap as it is.) Before that, on one shrunk four
@@ -569,19 +575,18 @@ std::vector<cv::Point2f> Board::detect_chessboard(const cv::Mat& gray,
   bool found = false;
   if (cap > 0 && std::min(search.cols, search.rows) >= 32 && busy(half_size_contours(search), cap)) {
     const int quarter = 4 * k;
-    if (std::min(gray.cols / quarter, gray.rows / quarter) >= kQuarterSearchMinSide &&
-        cv::findChessboardCorners(shrink_for_search(gray, quarter), pattern, pts, flags)) {
+    if (std::min(area.cols / quarter, area.rows / quarter) >= kQuarterSearchMinSide &&
+        cv::findChessboardCorners(shrink_for_search(area, quarter), pattern, pts, flags)) {
       k = quarter;
       found = true;
     } else {
       k *= 2;
-      search = shrink_for_search(gray, k);
+      search = shrink_for_search(area, k);
     }
   }
   if (!found && !cv::findChessboardCorners(search, pattern, pts, flags)) return {};
-  if (k > 1) {
-    for (auto& p : pts) p = to_full_resolution(p, k);
-  }
+  const cv::Point2f origin(static_cast<float>(where.region.x), static_cast<float>(where.region.y));
+  for (auto& p : pts) p = (k > 1 ? to_full_resolution(p, k) : p) + origin;
   int hw = options.subpix_half_window;
   if (hw <= 0 && k == 1) hw = subpix_half_window(pts, spec_.cols, spec_.rows);
   if (hw <= 0) hw = subpix_half_window(pts, spec_.cols, spec_.rows, std::max(11, 3 * k));
@@ -592,12 +597,13 @@ std::vector<cv::Point2f> Board::detect_chessboard(const cv::Mat& gray,
 
 // ChArUco: markers (on a shrunk copy for large frames), OpenCV's corner interpolation and
 // refinement at full resolution, then ours (refine_charuco_corners).
-void Board::detect_charuco(const cv::Mat& gray, const DetectorOptions& options,
+void Board::detect_charuco(const cv::Mat& gray, const Search& where, const DetectorOptions& options,
                            Detection* det) const {
   std::vector<std::vector<cv::Point2f>> marker_corners;
   std::vector<int> marker_ids;
-  int k = search_factor(gray, options);
-  cv::Mat search = k > 1 ? shrink_for_search(gray, k) : gray;
+  const cv::Mat area = where.region.empty() ? gray : gray(where.region);
+  int k = std::max(where.shrink, search_factor(area, options));
+  cv::Mat search = k > 1 ? shrink_for_search(area, k) : area;
   const int cap = quad_cap(options, spec_.cols * spec_.rows);
   // A busy search image (uniform noise, dense clutter; see busy()) is searched on a copy shrunk
   // twice as much. Search images of kPrecountFullResolutionMaxSide or less are not tested: the
@@ -612,7 +618,7 @@ void Board::detect_charuco(const cv::Mat& gray, const DetectorOptions& options,
     half_size = half_size_contours(search);
     if (busy(half_size, kCharucoBusyFactor * cap)) {
       k *= 2;
-      search = shrink_for_search(gray, k);
+      search = shrink_for_search(area, k);
       half_size.clear();
     }
   }
@@ -621,16 +627,34 @@ void Board::detect_charuco(const cv::Mat& gray, const DetectorOptions& options,
   const double min_perimeter_px = 4.0 * options.min_marker_pixels_per_cell * cells;
   const cv::Ptr<cv::aruco::DetectorParameters> params =
       cv::makePtr<cv::aruco::DetectorParameters>(*impl_->params);
-  params->minMarkerPerimeterRate = std::max(
-      params->minMarkerPerimeterRate, min_perimeter_px / std::max(search.cols, search.rows));
-  if (cap > 0) {
+  const double search_side = std::max(search.cols, search.rows);
+  params->minMarkerPerimeterRate =
+      std::max(params->minMarkerPerimeterRate, min_perimeter_px / search_side);
+  const bool sized = where.max_perimeter_px > 0;
+  if (sized) {
+    // Markers of a known size (tracking): only quads of that size, thresholded at one window of
+    // about half the smallest marker's side (odd, 5 to 15 px of the search image; the lower
+    // perimeter bound is half the smallest marker's). Wider windows lost markers at a shrink of
+    // 3 (17 px and more on a 1189x720 region: 32 of 40 corners), narrower ones found them all.
+    params->minMarkerPerimeterRate =
+        std::max(params->minMarkerPerimeterRate, where.min_perimeter_px / k / search_side);
+    params->maxMarkerPerimeterRate =
+        std::max(params->minMarkerPerimeterRate * 1.01, where.max_perimeter_px / k / search_side);
+    const int half_side = static_cast<int>(where.min_perimeter_px / k / 4);
+    const int window = std::clamp(half_side / 2, 2, 7) * 2 + 1;
+    params->adaptiveThreshWinSizeMin = window;
+    params->adaptiveThreshWinSizeMax = window;
+    params->adaptiveThreshWinSizeStep = 1;
+    // OpenCV's distance to the image's border in full-resolution pixels, not the copy's.
+    params->minDistanceToBorder = (params->minDistanceToBorder + k - 1) / k;
+  }
+  if (cap > 0 && !sized) {
     cap_candidate_quads(search, cap, half_size.empty() ? nullptr : &half_size, params.get());
   }
   cv::aruco::detectMarkers(search, impl_->dictionary, marker_corners, marker_ids, params);
-  if (k > 1) {
-    for (auto& quad : marker_corners)
-      for (auto& p : quad) p = to_full_resolution(p, k);
-  }
+  const cv::Point2f origin(static_cast<float>(where.region.x), static_cast<float>(where.region.y));
+  for (auto& quad : marker_corners)
+    for (auto& p : quad) p = (k > 1 ? to_full_resolution(p, k) : p) + origin;
   det->markers = static_cast<int>(marker_ids.size());
   if (marker_ids.empty()) return;
   std::vector<cv::Point2f> ch_corners;
@@ -657,14 +681,38 @@ void Board::detect_charuco(const cv::Mat& gray, const DetectorOptions& options,
 
 Detection Board::detect(const cv::Mat& image, const DetectorOptions& options) const {
   check_detect_size(image);  // before any work on the pixels
+  return detect_gray(to_gray(image), Search{}, options);
+}
+
+Detection Board::detect_in(const cv::Mat& image, const cv::Rect& region, int shrink,
+                           const DetectorOptions& options) const {
+  return detect_in(image, region, shrink, 0, 0, options);
+}
+
+Detection Board::detect_in(const cv::Mat& image, const cv::Rect& region, int shrink,
+                           double min_perimeter_px, double max_perimeter_px,
+                           const DetectorOptions& options) const {
+  check_detect_size(image);
   const cv::Mat gray = to_gray(image);
+  const cv::Rect clipped = region & cv::Rect(0, 0, gray.cols, gray.rows);
+  if (clipped.empty()) return Detection{};
+  const bool bounded = std::isfinite(min_perimeter_px) && std::isfinite(max_perimeter_px) &&
+                       min_perimeter_px > 0 && max_perimeter_px > min_perimeter_px;
+  return detect_gray(gray,
+                     Search{clipped, std::max(1, shrink), bounded ? min_perimeter_px : 0,
+                            bounded ? max_perimeter_px : 0},
+                     options);
+}
+
+Detection Board::detect_gray(const cv::Mat& gray, const Search& where,
+                             const DetectorOptions& options) const {
   Detection det;
   try {
     if (spec_.type == BoardType::kCharuco) {
-      detect_charuco(gray, options, &det);
+      detect_charuco(gray, where, options, &det);
       return det;
     }
-    const std::vector<cv::Point2f> pts = detect_chessboard(gray, options);
+    const std::vector<cv::Point2f> pts = detect_chessboard(gray, where, options);
     for (size_t i = 0; i < pts.size(); ++i) {
       det.ids.push_back(static_cast<int>(i));
       det.image_points.emplace_back(pts[i].x, pts[i].y);

@@ -129,6 +129,8 @@ class Board {
   Board& operator=(const Board&);
 
   const BoardSpec& spec() const { return spec_; }
+  // ChArUco: cells across a marker, its black border included (DICT_4X4: 6); 0 for a chessboard.
+  int marker_grid_cells() const;
   // Total number of corners a full detection yields.
   int num_corners() const { return static_cast<int>(corners_.size()); }
   // Board coordinates of every corner, indexed by id.
@@ -142,6 +144,21 @@ class Board {
   // throws Error(kInvalidArgument) for an empty or non-8-bit image, or one of more than
   // kMaxDetectPixels pixels (naming the limit).
   Detection detect(const cv::Mat& image, const DetectorOptions& options = {}) const;
+  // detect() limited to `region` of the image (full-frame pixels, clipped to the image), searched
+  // on a copy of it shrunk by `shrink` (at least 1; raised where the region's longer side needs
+  // it, as detect() does for a whole frame). The corners are refined at full resolution in the
+  // whole frame, so a board well inside the region gives detect()'s corners up to the
+  // refinement's tolerance. For tracking (core/board/tracking.hpp). Errors as detect(); an
+  // empty region (after clipping) finds nothing.
+  Detection detect_in(const cv::Mat& image, const cv::Rect& region, int shrink,
+                      const DetectorOptions& options = {}) const;
+  // ... and, for a ChArUco board whose markers' perimeters are known to lie in
+  // [min_perimeter_px, max_perimeter_px] (full-resolution pixels; from the last frame), only
+  // candidate quads of that size are decoded, at one threshold scale fitted to them, instead of
+  // OpenCV's three (chessboard: the bounds are ignored).
+  Detection detect_in(const cv::Mat& image, const cv::Rect& region, int shrink,
+                      double min_perimeter_px, double max_perimeter_px,
+                      const DetectorOptions& options = {}) const;
 
   // Renders the board pattern (no margin) at an integer number of texels per square, plus
   // `margin_squares` of white border. Texel edges coincide with square edges exactly.
@@ -166,10 +183,19 @@ class Board {
 
  private:
   struct Impl;
+  // Where a search looks: a region of the frame (empty: all of it) and the least shrink factor.
+  struct Search {
+    cv::Rect region;
+    int shrink = 1;
+    double min_perimeter_px = 0, max_perimeter_px = 0;  // markers' (0: unknown)
+  };
+  Detection detect_gray(const cv::Mat& gray, const Search& where,
+                        const DetectorOptions& options) const;
   // detect() for each kind of board (grey image, cv::Exception for "not found").
-  std::vector<cv::Point2f> detect_chessboard(const cv::Mat& gray,
+  std::vector<cv::Point2f> detect_chessboard(const cv::Mat& gray, const Search& where,
                                              const DetectorOptions& options) const;
-  void detect_charuco(const cv::Mat& gray, const DetectorOptions& options, Detection* det) const;
+  void detect_charuco(const cv::Mat& gray, const Search& where, const DetectorOptions& options,
+                      Detection* det) const;
   BoardSpec spec_;
   std::vector<cv::Point3d> corners_;
   std::shared_ptr<const Impl> impl_;

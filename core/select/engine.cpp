@@ -196,14 +196,14 @@ FrameReport CalibrationEngine::Impl::process(const cv::Mat& image) {
   }
   FrameReport r;
   r.frame_index = frame_index++;
-  const Detection det = board.detect(image, opt.detector);
+  const Detection det = detect(image);
   r.corners = static_cast<int>(det.size());
   r.board_visible = det.size() >= 4;
   r.corners_required = corners_required();
   measure_stillness(det, &r);
   bootstrap_step(det, r);
   const std::optional<Pose> current = current_pose(det, &r);
-  capture_step(det, &r);
+  capture_step(image, det, &r);
   // A target choice is ahead: draw part of its view candidates now, spread over the frames in
   // which the board is moved to the current target.
   if (opt.view_candidates > 0 && scoring() && (state == EngineState::kInitialPose2 || state == EngineState::kRefining)) {
@@ -215,6 +215,11 @@ FrameReport CalibrationEngine::Impl::process(const cv::Mat& image) {
   r.guidance = guidance_text(r, current);
   last = r;
   return r;
+}
+
+Detection CalibrationEngine::Impl::detect(const cv::Mat& image) {
+  if (opt.track_board) return tracker.detect(board, image, opt.detector);
+  return tracker.detect_whole(board, image, opt.detector);
 }
 
 // Stillness (paper §4.3): every corner of the previous frame re-detected, mean motion small.
@@ -256,7 +261,10 @@ void CalibrationEngine::Impl::bootstrap_step(const Detection& det, const FrameRe
   // Robots: only still frames (not the ones taken while moving); the strong view at the
   // first target (tilted 45 degrees) then replaces a weaker start view.
   const bool may_bootstrap = !opt.robot || r.still;
-  if (keyframes.empty() && may_bootstrap && try_bootstrap(det)) {
+  // A board held still shows the view already fitted: the fit (a few ms) would only repeat.
+  const bool seen = r.still && bootstrap_view_fitted;
+  bootstrap_view_fitted = keyframes.empty() && may_bootstrap && (seen || r.board_visible);
+  if (keyframes.empty() && may_bootstrap && !seen && try_bootstrap(det)) {
     const bool first = state == EngineState::kBootstrapping;
     if (first) set_state(EngineState::kInitialPose1);
     // Regenerate the target only when the focal length moved noticeably, so the overlay
@@ -293,7 +301,8 @@ std::optional<Pose> CalibrationEngine::Impl::current_pose(const Detection& det, 
 
 // At the target, still and with enough corners: a keyframe. At the target without the corners:
 // the target moves back. Not reached in time: the next target.
-void CalibrationEngine::Impl::capture_step(const Detection& det, FrameReport* r) {
+void CalibrationEngine::Impl::capture_step(const cv::Mat& image, const Detection& det,
+                                           FrameReport* r) {
   const bool can_capture = state == EngineState::kInitialPose1 || state == EngineState::kInitialPose2 ||
                            state == EngineState::kRefining;
   if (!can_capture || !target) return;
@@ -303,6 +312,14 @@ void CalibrationEngine::Impl::capture_step(const Detection& det, FrameReport* r)
   if (r->pose_reached && r->still && r->corners >= r->corners_required) {
     r->captured = true;
     crowded_frames = 0;
+    // A keyframe is measured as with tracking off: the whole frame searched at full resolution.
+    if (tracker.last_was_tracked()) {
+      const Detection whole = tracker.detect_whole(board, image, opt.detector);
+      if (whole.size() >= det.size()) {
+        capture(whole);
+        return;
+      }
+    }
     capture(det);
   } else if (r->pose_reached && r->still && r->corners < r->corners_required &&
              ++crowded_frames >= kCrowdedFrames) {
@@ -475,6 +492,9 @@ const ExpectedError* CalibrationEngine::expected_error() const {
 }
 const std::vector<Observation>& CalibrationEngine::keyframe_observations() const { return impl_->keyframes; }
 const FrameReport& CalibrationEngine::last_report() const { return impl_->last; }
+const BoardTracker::Counts& CalibrationEngine::board_search_counts() const {
+  return impl_->tracker.counts();
+}
 const Board& CalibrationEngine::board() const { return impl_->board; }
 const EngineOptions& CalibrationEngine::options() const { return impl_->opt; }
 void CalibrationEngine::set_event_callback(std::function<void(const EngineEvent&)> cb) { impl_->callback = std::move(cb); }

@@ -17,11 +17,12 @@
 #include <string>
 #include <vector>
 
+#include "board/board.hpp"
+#include "board/tracking.hpp"
 #include "calib/calibration.hpp"
 #include "calib/expected_error.hpp"
 #include "device/camera.hpp"
 #include "select/pose_rules.hpp"
-#include "board/board.hpp"
 
 namespace posecal {
 
@@ -130,6 +131,12 @@ struct EngineOptions {
   PoseGenOptions posegen;
   CalibrationOptions calibration;
   DetectorOptions detector;
+  // While the operator moves the board to a target, search it around where it was in the last
+  // frame, on a shrunk copy when its markers are large (core/board/tracking.hpp): a third of the
+  // CPU of a whole-frame search per 1280x720 frame (docs/performance.md). Whenever that finds
+  // fewer corners than the last frame, every 15 frames, before the first target and for every
+  // keyframe the whole frame is searched, so keyframes are what tracking off would measure.
+  bool track_board = true;
   bool is_valid(std::string* error) const;
 };
 
@@ -246,6 +253,9 @@ class CalibrationEngine {
   // not fit the engine (parameter counts, states).
   bool restore(const std::vector<KeyframeRecord>& records);
   const FrameReport& last_report() const;
+  // How the frames' boards were searched (EngineOptions::track_board): tracked, the whole frame
+  // after a tracked search found fewer corners, the whole frame only.
+  const BoardTracker::Counts& board_search_counts() const;
   const Board& board() const;
   const EngineOptions& options() const;
   // What a guided camera (simulated operator) needs.

@@ -14,6 +14,7 @@
 #include <string>
 #include <vector>
 
+#include "board/tracking.hpp"
 #include "calib/expected_error.hpp"
 #include "select/engine.hpp"
 #include "select/view_candidates.hpp"
@@ -41,6 +42,9 @@ struct CalibrationEngine::Impl {
   uint64_t target_serial = 0;
   uint64_t target_since_frame = 0;
   int initial_retries = 0;  // initial poses offered again after a timeout (this initial pose)
+  // The last frame's view was given to the bootstrap fit (or was a still copy of one that was):
+  // a still board shows it again and is not fitted again.
+  bool bootstrap_view_fitted = false;
 
   std::vector<Observation> keyframes;
   std::vector<int> keyframe_target;  // parameter each keyframe was captured for (-1: init)
@@ -64,6 +68,7 @@ struct CalibrationEngine::Impl {
   int group_keyframes[2] = {0, 0};  // refinement keyframes captured per parameter group
 
   Detection previous;
+  BoardTracker tracker;  // EngineOptions::track_board
   bool robot_reached = false;
   int crowded_frames = 0;  // consecutive still frames at the target with too few corners
   static constexpr int kCrowdedFrames = 3;
@@ -84,7 +89,9 @@ struct CalibrationEngine::Impl {
   void measure_stillness(const Detection& det, FrameReport* r);
   void bootstrap_step(const Detection& det, const FrameReport& r);
   std::optional<Pose> current_pose(const Detection& det, FrameReport* r) const;
-  void capture_step(const Detection& det, FrameReport* r);
+  void capture_step(const cv::Mat& image, const Detection& det, FrameReport* r);
+  // The frame's board: tracked while the operator moves it to a target, else searched whole.
+  Detection detect(const cv::Mat& image);
   void move_target_back(int corners);
   void capture(const Detection& det);
   void after_calibration();

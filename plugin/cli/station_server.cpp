@@ -77,16 +77,6 @@ void send_error(httplib::Response& res, int status, const std::string& message,
   send_json(res, j, status);
 }
 
-// The message of a Failure thrown by check() and friends.
-struct AbiError {
-  posecal_status status;
-  std::string message;
-};
-
-void must(posecal_status s) {
-  if (s != POSECAL_OK) throw AbiError{s, posecal_last_error()};
-}
-
 // A session the server steps.
 struct Served {
   std::string id, camera;
@@ -207,7 +197,8 @@ struct StationServer::Impl {
     s->height = field(status, "image_height", 0);
     const bool finished = field(status, "finished", false);
     Json result;
-    if (finished && has_result(s->session)) {
+    // Once, when the session finishes (the first result renders the simulated test set).
+    if (finished && s->result.is_null() && has_result(s->session)) {
       try {
         result = fetch_result(s->session);
       } catch (const Failure&) {
@@ -215,7 +206,7 @@ struct StationServer::Impl {
     }
     std::lock_guard<std::mutex> lk(s->cache);
     s->status = std::move(status);
-    if (finished) s->result = std::move(result);
+    if (finished && !result.is_null()) s->result = std::move(result);
     return finished;
   }
 
@@ -280,25 +271,25 @@ struct StationServer::Impl {
     {
       std::lock_guard<std::mutex> lk(sessions_mu);
       if (static_cast<int>(sessions.size()) >= options.max_sessions) {
-        throw AbiError{POSECAL_E_UNSUPPORTED, "the station serves at most " +
-                                                  std::to_string(options.max_sessions) +
-                                                  " sessions (--max-sessions); close one first"};
+        throw Failure{POSECAL_E_UNSUPPORTED, "the station serves at most " +
+                                                 std::to_string(options.max_sessions) +
+                                                 " sessions (--max-sessions); close one first"};
       }
     }
     if (camera == "external") {
-      throw AbiError{POSECAL_E_INVALID_ARGUMENT,
-                     "camera \"external\": the server steps its cameras itself; open sim://, "
-                     "aravis://, v4l2:// or images:// cameras"};
+      throw Failure{POSECAL_E_INVALID_ARGUMENT,
+                    "camera \"external\": the server steps its cameras itself; open sim://, "
+                    "aravis://, v4l2:// or images:// cameras"};
     }
     auto s = std::make_shared<Served>();
     s->camera = camera;
     s->config = config;
     const std::string text = config.is_null() ? std::string() : json_text(config);
-    must(posecal_session_open(ctx, camera.c_str(), text.empty() ? nullptr : text.c_str(),
-                              &s->session));
+    check(posecal_session_open(ctx, camera.c_str(), text.empty() ? nullptr : text.c_str(),
+                               &s->session));
     try {
       s->callback_user = {this, s.get()};
-      must(posecal_session_set_callback(s->session, &Impl::on_event, &s->callback_user));
+      check(posecal_session_set_callback(s->session, &Impl::on_event, &s->callback_user));
       refresh(s.get());
       std::lock_guard<std::mutex> lk(sessions_mu);
       s->order = ++opened;
@@ -541,8 +532,8 @@ struct StationServer::Impl {
       try {
         const auto s = open(body["camera"].get<std::string>(), config);
         send_json(res, {{"id", s->id}, {"camera", s->camera}}, 201);
-      } catch (const AbiError& e) {
-        send_error(res, http_status(e.status), e.message, e.status);
+      } catch (const Failure& f) {
+        send_error(res, http_status(f.status), f.message, f.status);
       }
     });
 
@@ -557,8 +548,6 @@ struct StationServer::Impl {
         }
         try {
           fn(req, res, s);
-        } catch (const AbiError& e) {
-          send_error(res, http_status(e.status), e.message, e.status);
         } catch (const Failure& f) {
           send_error(res, http_status(f.status), f.message, f.status);
         }
@@ -588,7 +577,7 @@ struct StationServer::Impl {
             }
             const Json r = with_session(s.get(), [&] {
               if (!has_result(s->session)) {
-                throw AbiError{POSECAL_E_STATE, "no calibration yet: it needs two keyframes"};
+                throw Failure{POSECAL_E_STATE, "no calibration yet: it needs two keyframes"};
               }
               return fetch_result(s->session);
             });
@@ -597,22 +586,22 @@ struct StationServer::Impl {
     h.Get(one + "/target", with([this](const httplib::Request&, httplib::Response& res,
                                        const std::shared_ptr<Served>& s) {
             double r[3], t[3];
-            with_session(s.get(), [&] { must(posecal_session_target_pose(s->session, r, t)); });
+            with_session(s.get(), [&] { check(posecal_session_target_pose(s->session, r, t)); });
             send_json(res, {{"rvec", {r[0], r[1], r[2]}}, {"tvec", {t[0], t[1], t[2]}}});
           }));
     h.Post(one + "/reached", with([this](const httplib::Request&, httplib::Response& res,
                                          const std::shared_ptr<Served>& s) {
-             with_session(s.get(), [&] { must(posecal_session_pose_reached(s->session)); });
+             with_session(s.get(), [&] { check(posecal_session_pose_reached(s->session)); });
              send_json(res, {{"id", s->id}, {"reached", true}});
            }));
     h.Post(one + "/skip", with([this](const httplib::Request&, httplib::Response& res,
                                       const std::shared_ptr<Served>& s) {
-             with_session(s.get(), [&] { must(posecal_session_skip_target(s->session)); });
+             with_session(s.get(), [&] { check(posecal_session_skip_target(s->session)); });
              send_json(res, {{"id", s->id}, {"skipped", true}});
            }));
     h.Post(one + "/abort", with([](const httplib::Request&, httplib::Response& res,
                                    const std::shared_ptr<Served>& s) {
-             must(posecal_session_interrupt(s->session));  // any thread (docs/c-api.md)
+             check(posecal_session_interrupt(s->session));  // any thread (docs/c-api.md)
              send_json(res, {{"id", s->id}, {"interrupted", true}});
            }));
     h.Post(one + "/save", with([this](const httplib::Request& req, httplib::Response& res,
@@ -621,18 +610,18 @@ struct StationServer::Impl {
              try {
                body = Json::parse(req.body);
              } catch (const std::exception& e) {
-               throw AbiError{POSECAL_E_INVALID_ARGUMENT,
-                              std::string("the body is not JSON: ") + e.what()};
+               throw Failure{POSECAL_E_INVALID_ARGUMENT,
+                             std::string("the body is not JSON: ") + e.what()};
              }
              if (!body.is_object() || !body.contains("path") || !body["path"].is_string() ||
                  (body.contains("format") && !body["format"].is_string())) {
-               throw AbiError{POSECAL_E_INVALID_ARGUMENT,
-                              "the body must be {\"path\": FILE, \"format\": NAME (optional)}"};
+               throw Failure{POSECAL_E_INVALID_ARGUMENT,
+                             "the body must be {\"path\": FILE, \"format\": NAME (optional)}"};
              }
              const std::string path = body["path"], format = body.value("format", std::string());
              with_session(s.get(), [&] {
-               must(posecal_session_save_as(s->session, path.c_str(),
-                                            format.empty() ? nullptr : format.c_str()));
+               check(posecal_session_save_as(s->session, path.c_str(),
+                                             format.empty() ? nullptr : format.c_str()));
              });
              send_json(res, {{"id", s->id}, {"saved", path}});
            }));
@@ -670,7 +659,7 @@ struct StationServer::Impl {
             s->picture_cv.wait_for(lk, std::chrono::seconds(2), [&] {
               return s->picture_seq > before || (s->done && !s->jpeg.empty());
             });
-            if (s->jpeg.empty()) throw AbiError{POSECAL_E_STATE, "no frame yet"};
+            if (s->jpeg.empty()) throw Failure{POSECAL_E_STATE, "no frame yet"};
             res.set_content(reinterpret_cast<const char*>(s->jpeg.data()), s->jpeg.size(),
                             "image/jpeg");
           }));

@@ -321,7 +321,10 @@ typedef struct posecal_image {
  *   "target": spec string (default "charuco:9x6:0.028:0.0182:DICT_4X4_50"),
  *   "operator": "person" | "robot"   (robot: the host reports poses reached),
  *   "convergence_threshold" (0.1), "max_keyframes" (20), "jaccard_threshold" (0.8),
- *   "still_motion_px" (1.5), "constraint_factor" (5), "target_timeout_frames" (0 = never),
+ *   "still_motion_px" (1.5), "track_board" (true: while the board is moved to a target it is
+ *   searched around where it was in the last frame, the whole frame when that finds fewer
+ *   corners, every 15 frames and for every keyframe; false: the whole frame every time),
+ *   "constraint_factor" (5), "target_timeout_frames" (0 = never),
  *   "pose_candidates" (6), "lock_settings" (true), "max_tilt_deg" (70),
  *   "fixed" ([]: names among fx fy cx cy k1 k2 p1 p2 k3 held at their initial value,
  *   0 for distortion, e.g. ["k2", "k3"] for a narrow lens; they count as converged),

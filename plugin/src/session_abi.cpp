@@ -274,6 +274,7 @@ Json status_json(posecal_session* s) {
     j["parameters"] = Json::object();
     j["expected_error_px"] = nullptr;
     j["expected_error_p90_px"] = nullptr;
+    j["board_search"] = {{"tracked", 0}, {"fallback", 0}, {"whole", 0}};
     return j;
   }
   const FrameReport& r = eng->last_report();
@@ -304,6 +305,9 @@ Json status_json(posecal_session* s) {
                       {"converged", p.converged}};
   }
   j["parameters"] = params;
+  const BoardTracker::Counts& search = eng->board_search_counts();
+  j["board_search"] = {
+      {"tracked", search.tracked}, {"fallback", search.fallback}, {"whole", search.whole}};
   return j;
 }
 

@@ -6,14 +6,15 @@
 #include <optional>
 #include <random>
 
+#include "board/tracking.hpp"
+#include "board/views.hpp"
 #include "calib/calibration.hpp"
+#include "calib/information.hpp"
+#include "lens/reference_models.hpp"
 #include "select/engine.hpp"
 #include "select/pose_rules.hpp"
-#include "sim/synthetic.hpp"
 #include "select/view_candidates.hpp"
-#include "board/views.hpp"
-#include "lens/reference_models.hpp"
-#include "calib/information.hpp"
+#include "sim/synthetic.hpp"
 
 using namespace posecal;
 
@@ -100,6 +101,24 @@ static void BM_DetectCharuco_1280x720(benchmark::State& state) {
   }
 }
 BENCHMARK(BM_DetectCharuco_1280x720)->Unit(benchmark::kMillisecond);
+
+// The same frame searched as a tracked one (core/board/tracking.hpp): around the board found in
+// it, on a copy shrunk as far as the markers stay resolved.
+static void BM_DetectCharuco_1280x720_Tracked(benchmark::State& state) {
+  Fixture& f = fixture();
+  const Detection last = f.board.detect(f.frame_with_board);
+  const TrackingPlan plan = plan_tracking(f.board, last, f.frame_with_board.size());
+  for (auto _ : state) {
+    Detection d = f.board.detect_in(f.frame_with_board, plan.region, plan.shrink,
+                                    plan.min_perimeter_px, plan.max_perimeter_px);
+    if (d.size() < last.size()) state.SkipWithError("the tracked search found fewer corners");
+    benchmark::DoNotOptimize(d.image_points.data());
+  }
+  state.counters["shrink"] = plan.shrink;
+  state.counters["region_share"] =
+      static_cast<double>(plan.region.area()) / static_cast<double>(f.frame_with_board.total());
+}
+BENCHMARK(BM_DetectCharuco_1280x720_Tracked)->Unit(benchmark::kMillisecond);
 
 static void BM_DetectCharuco_1280x720_NoBoard(benchmark::State& state) {
   Fixture& f = fixture();

@@ -378,7 +378,7 @@ class Context(_Handle):
     def open(self, uri: str, **config: Any) -> Session:
         """Opens a calibration session on a camera. config: the keys of posecal_session_open
         (core/session/session_keys.def): method, target, operator, convergence_threshold, max_keyframes,
-        jaccard_threshold, still_motion_px, constraint_factor, target_timeout_frames,
+        jaccard_threshold, still_motion_px, track_board, constraint_factor, target_timeout_frames,
         pose_candidates, lock_settings, max_tilt_deg, fixed, convergence_measure,
         measured_convergence, candidate_score, view_candidates, view_must_serve_target,
         board_timeout_s, accuracy_px, journal, journal_images, resume, spec, records, records_spool,
