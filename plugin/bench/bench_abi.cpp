@@ -27,39 +27,18 @@
 #include <thread>
 #include <vector>
 
+#include "bench_common.hpp"
 #include "posecal.h"
 
 namespace {
 
-using Clock = std::chrono::steady_clock;
+using posecal_bench::Clock;
+using posecal_bench::converged;
+using posecal_bench::die;
+using posecal_bench::since_s;
 
-double cpu_s() {
-  timespec ts{};
-  clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
-  return static_cast<double>(ts.tv_sec) + 1e-9 * static_cast<double>(ts.tv_nsec);
-}
-
-double since_s(Clock::time_point t0) {
-  return std::chrono::duration<double>(Clock::now() - t0).count();
-}
-
-void die(const char* what) {
-  std::fprintf(stderr, "%s: %s\n", what, posecal_last_error());
-  std::exit(2);
-}
-
-bool converged(posecal_session* s) {
-  std::vector<char> buf(1 << 16);
-  size_t size = buf.size();
-  if (posecal_session_status(s, buf.data(), &size) != POSECAL_OK) die("status");
-  return std::strstr(buf.data(), "\"state\":\"converged\"") != nullptr;
-}
-
-double median(std::vector<double> v) {
-  std::sort(v.begin(), v.end());
-  const size_t n = v.size();
-  return n % 2 ? v[n / 2] : 0.5 * (v[n / 2 - 1] + v[n / 2]);
-}
+double cpu_s() { return posecal_bench::clock_s(CLOCK_PROCESS_CPUTIME_ID); }
+double median(const std::vector<double>& v) { return posecal_bench::quantile(v, 0.5); }
 
 struct Single {
   double wall_s, cpu_s, result_wall_s;

@@ -38,53 +38,26 @@
 #include <thread>
 #include <vector>
 
+#include "bench_common.hpp"
 #include "posecal.h"
 
 namespace {
 
-using Clock = std::chrono::steady_clock;
+using Clock = posecal_bench::Clock;
 using Frame = std::vector<unsigned char>;
-
-double clock_s(clockid_t id) {
-  timespec ts{};
-  clock_gettime(id, &ts);
-  return static_cast<double>(ts.tv_sec) + 1e-9 * static_cast<double>(ts.tv_nsec);
-}
-
-double since_s(Clock::time_point t0) {
-  return std::chrono::duration<double>(Clock::now() - t0).count();
-}
-
-void die(const char* what) {
-  std::fprintf(stderr, "%s: %s\n", what, posecal_last_error());
-  std::exit(2);
-}
-
-bool converged(posecal_session* s) {
-  std::vector<char> buf(1 << 16);
-  size_t size = buf.size();
-  if (posecal_session_status(s, buf.data(), &size) != POSECAL_OK) die("status");
-  return std::strstr(buf.data(), "\"state\":\"converged\"") != nullptr;
-}
+using posecal_bench::clock_s;
+using posecal_bench::converged;
+using posecal_bench::die;
+using posecal_bench::quantile;
+using posecal_bench::since_s;
 
 // The status's "board_search" object, as JSON text.
 std::string board_search(posecal_session* s) {
-  std::vector<char> buf(1 << 16);
-  size_t size = buf.size();
-  if (posecal_session_status(s, buf.data(), &size) != POSECAL_OK) die("status");
-  const char* at = std::strstr(buf.data(), "\"board_search\":");
-  if (!at) return "?";
-  const char* end = std::strchr(at, '}');
-  return std::string(at + 15, end ? end + 1 : at + 15);
-}
-
-double quantile(std::vector<double> v, double q) {
-  if (v.empty()) return 0;
-  std::sort(v.begin(), v.end());
-  const double at = q * static_cast<double>(v.size() - 1);
-  const auto lo = static_cast<size_t>(at);
-  const size_t hi = std::min(lo + 1, v.size() - 1);
-  return v[lo] + (at - static_cast<double>(lo)) * (v[hi] - v[lo]);
+  const std::string st = posecal_bench::status_json(s);
+  const size_t at = st.find("\"board_search\":");
+  if (at == std::string::npos) return "?";
+  const size_t end = st.find('}', at);
+  return st.substr(at + 15, end == std::string::npos ? 0 : end + 1 - (at + 15));
 }
 
 constexpr int kWidth = 1280, kHeight = 720;

@@ -323,6 +323,8 @@ struct StationServer::Impl {
               {"converged", field(st, "converged", false)},
               {"interrupted", field(st, "interrupted", false)},
               {"keyframes", field(st, "keyframes", 0)},
+              // The cap the page's keyframe bar fills towards (session_keys.def's default).
+              {"max_keyframes", field(s->config, "max_keyframes", 20)},
               {"guidance", field(st, "guidance", std::string())},
               {"done", s->done},
               {"camera_connected", field(st, "camera_connected", true)},

@@ -172,9 +172,13 @@ def mjpeg_parts(server, path, count, timeout=60):
 
 
 def test_live_view_and_abort(server):
-    status, opened = server.json("POST", "/api/sessions", {"camera": "sim://?seed=7"})
+    status, opened = server.json("POST", "/api/sessions", {"camera": "sim://?seed=7",
+                                                           "config": {"max_keyframes": 9}})
     assert status == 201
     sid = opened["id"]
+    # The session list carries the cap the page's keyframe bar fills towards.
+    status, sessions = server.json("GET", "/api/sessions")
+    assert status == 200 and [s["max_keyframes"] for s in sessions if s["id"] == sid] == [9]
     pictures = mjpeg_parts(server, f"/api/sessions/{sid}/stream.mjpg", 5)
     for p in pictures:
         assert p is not None and p.shape == (720, 1280, 3)
