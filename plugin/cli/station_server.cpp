@@ -30,6 +30,64 @@ constexpr int kStepTimeoutMs = 200;        // one step's wait for a frame
 constexpr int kStreamWaitMs = 1000;        // a stream's keep-alive interval
 constexpr int kApiThreads = 16;  // HTTP threads beside those the streams hold (max_streams)
 
+constexpr size_t kMaxWaitingConnections = 64;  // accepted, waiting for an HTTP thread; above: 503
+constexpr int kRefusingThreads = 2;            // answer 503 to the connections above that
+
+// Set in the threads that refuse: the pre-routing handler answers 503 there.
+thread_local bool t_refusing = false;
+
+// The server's connections: `workers` threads serve them, at most kMaxWaitingConnections wait for
+// one; a connection beyond that is handed to one of kRefusingThreads, which answer its request
+// 503 at once (httplib gives a queue only the job, not the socket, so the refusal has to read the
+// request like any other; an idle connection holds a refusing thread for the 5 s read timeout,
+// and the connections waiting for those are bounded by the process's file descriptors).
+class BoundedConnections : public httplib::TaskQueue {
+ public:
+  explicit BoundedConnections(size_t workers) {
+    for (size_t i = 0; i < workers; ++i) serving_.emplace_back([this] { run(serve_, false); });
+    for (int i = 0; i < kRefusingThreads; ++i)
+      refusing_.emplace_back([this] { run(refuse_, true); });
+  }
+  void enqueue(std::function<void()> fn) override {
+    {
+      std::lock_guard<std::mutex> lk(mu_);
+      const bool full = serve_.size() >= kMaxWaitingConnections;
+      (full ? refuse_ : serve_).push_back(std::move(fn));
+    }
+    cv_.notify_all();
+  }
+  void shutdown() override {
+    {
+      std::lock_guard<std::mutex> lk(mu_);
+      down_ = true;
+    }
+    cv_.notify_all();
+    for (auto& t : serving_) t.join();
+    for (auto& t : refusing_) t.join();
+  }
+
+ private:
+  void run(std::deque<std::function<void()>>& jobs, bool refusing) {
+    t_refusing = refusing;
+    for (;;) {
+      std::function<void()> fn;
+      {
+        std::unique_lock<std::mutex> lk(mu_);
+        cv_.wait(lk, [&] { return down_ || !jobs.empty(); });
+        if (jobs.empty()) return;  // shut down, nothing left
+        fn = std::move(jobs.front());
+        jobs.pop_front();
+      }
+      fn();
+    }
+  }
+  std::mutex mu_;
+  std::condition_variable cv_;
+  std::deque<std::function<void()>> serve_, refuse_;
+  bool down_ = false;
+  std::vector<std::thread> serving_, refusing_;
+};
+
 // The HTTP status of a failed ABI call.
 int http_status(posecal_status s) {
   switch (s) {
@@ -448,9 +506,18 @@ struct StationServer::Impl {
     h.set_write_timeout(5, 0);
     h.set_keep_alive_timeout(5);
     h.new_task_queue = [n = options.max_streams + kApiThreads] {
-      return new httplib::ThreadPool(static_cast<size_t>(n));
+      return new BoundedConnections(static_cast<size_t>(n));
     };
     h.set_pre_routing_handler([this](const httplib::Request& req, httplib::Response& res) {
+      if (t_refusing) {
+        res.set_header("Connection", "close");
+        res.set_header("Retry-After", "5");
+        send_error(res, 503,
+                   "too many connections: " + std::to_string(kMaxWaitingConnections) +
+                       " are waiting for the server's " +
+                       std::to_string(options.max_streams + kApiThreads) + " HTTP threads");
+        return httplib::Server::HandlerResponse::Handled;
+      }
       if (authorised(req)) return httplib::Server::HandlerResponse::Unhandled;
       send_error(res, 401, "a token is required: Authorization: Bearer TOKEN, or ?token=TOKEN");
       return httplib::Server::HandlerResponse::Handled;
