@@ -52,12 +52,17 @@ Command add_serve(CLI::App* app) {
   cmd->add_option("--max-streams", o->max_streams,
                   "event and live-view streams open at once (default 16; more: 503)")
       ->check(CLI::Range(1, 64));
+  cmd->add_option("--records", o->records,
+                  "the station's record store (SQLite file or postgresql:// URL): sessions "
+                  "without a \"records\" key record there; GET /api/records reads it")
+      ->check(non_empty());
   add_json_flag(cmd, json.get(), "print the listening address as one JSON line");
   cmd->footer(
       "Routes (docs/serve.md): GET /api/cameras; POST /api/sessions {\"camera\": URI, "
       "\"config\": {...}};\n  GET /api/sessions; GET|DELETE /api/sessions/ID; GET "
       "/api/sessions/ID/result|target|events|stream.mjpg|frame.jpg;\n  POST "
-      "/api/sessions/ID/reached|skip|abort|save; GET /api/events; GET / (the page).\n"
+      "/api/sessions/ID/reached|skip|abort|save; GET /api/events; GET /api/records[/RUN_ID];\n  "
+      "GET / (the page).\n"
       "SIGINT / SIGTERM close every session and exit 0.");
   return [o, json] { return run_serve(*o, *json); };
 }

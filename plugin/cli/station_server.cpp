@@ -342,7 +342,11 @@ struct StationServer::Impl {
     auto s = std::make_shared<Served>();
     s->camera = camera;
     s->config = config;
-    const std::string text = config.is_null() ? std::string() : json_text(config);
+    if (!options.records.empty() && (config.is_null() || config.is_object()) &&
+        !(config.is_object() && config.contains("records"))) {
+      s->config["records"] = options.records;  // the station's store, unless the config names one
+    }
+    const std::string text = s->config.is_null() ? std::string() : json_text(s->config);
     check(posecal_session_open(ctx, camera.c_str(), text.empty() ? nullptr : text.c_str(),
                                &s->session));
     try {
@@ -552,7 +556,8 @@ struct StationServer::Impl {
                       {"sessions", sessions.size()},
                       {"max_sessions", options.max_sessions},
                       {"streams", streams.load()},
-                      {"max_streams", options.max_streams}});
+                      {"max_streams", options.max_streams},
+                      {"records", options.records.empty() ? Json() : Json(options.records)}});
     });
     h.Get("/api/cameras", [this](const httplib::Request&, httplib::Response& res) {
       try {
@@ -562,6 +567,29 @@ struct StationServer::Impl {
         send_error(res, http_status(f.status), f.message, f.status);
       }
     });
+    // The station's record store (--records): its runs, newest first, and one run.
+    const auto records = [this](auto fetch) {
+      return [this, fetch](const httplib::Request& req, httplib::Response& res) {
+        if (options.records.empty()) {
+          send_error(res, 404, "no record store: start the server with --records PATH|URL");
+          return;
+        }
+        try {
+          send_json(res,
+                    Json::parse(fetch_json([&](char* b, size_t* n) { return fetch(req, b, n); })));
+        } catch (const Failure& f) {
+          send_error(res, http_status(f.status), f.message, f.status);
+        }
+      };
+    };
+    h.Get("/api/records", records([this](const httplib::Request&, char* b, size_t* n) {
+            return posecal_records_list(options.records.c_str(), b, n);
+          }));
+    h.Get(R"(/api/records/([^/]+))",
+          records([this](const httplib::Request& req, char* b, size_t* n) {
+            const std::string run = req.matches[1];
+            return posecal_records_show(options.records.c_str(), run.c_str(), b, n);
+          }));
     h.Get("/api/sessions", [this](const httplib::Request&, httplib::Response& res) {
       std::vector<std::shared_ptr<Served>> all;
       {

@@ -23,6 +23,9 @@ struct ServeOptions {
   int max_sessions = 16;
   int max_streams = 16;         // event and picture streams at once; above: 503
   int frame_interval_ms = 100;  // the live view's pace (at most 10 pictures a second)
+  // The station's record store (a SQLite file or a postgresql:// URL; empty: none): sessions
+  // opened without a "records" key record there, and /api/records reads it.
+  std::string records;
 };
 
 class StationServer {

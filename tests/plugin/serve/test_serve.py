@@ -262,6 +262,39 @@ def test_too_many_connections_get_503_and_the_server_recovers():
     assert server.proc.returncode == 0, server.proc.stderr.read()
 
 
+def test_records_of_the_station(server, tmp_path):
+    # Without --records there is no store to read.
+    status, err = server.json("GET", "/api/records")
+    assert status == 404 and "--records" in err["error"]
+    store = tmp_path / "records.sqlite"
+    station = Server("--records", str(store))
+    try:
+        status, opened = station.json("POST", "/api/sessions", {"camera": "sim://?seed=5"})
+        assert status == 201, opened
+        sid = opened["id"]
+        st = wait_done(station, sid)
+        assert st["converged"], st
+        status, full = station.json("GET", f"/api/sessions/{sid}")
+        assert full["records"] == str(store) and full["run_id"], full
+        status, runs = station.json("GET", "/api/records")
+        assert status == 200 and [r["run_id"] for r in runs] == [full["run_id"]], runs
+        assert runs[0]["state"] == "converged" and runs[0]["keyframes"] == st["keyframes"]
+        status, run = station.json("GET", "/api/records/" + full["run_id"])
+        assert status == 200 and run["result"]["fx"] > 0 and len(run["keyframes"]) == st["keyframes"]
+        status, err = station.json("GET", "/api/records/no-such-run")
+        assert status == 404 and err["error"], err
+        # A session that names its own store keeps it.
+        own = tmp_path / "own.sqlite"
+        status, opened = station.json("POST", "/api/sessions",
+                                      {"camera": "sim://?seed=6", "config": {"records": str(own)}})
+        assert status == 201
+        status, st = station.json("GET", f"/api/sessions/{opened['id']}")
+        assert st["records"] == str(own), st
+    finally:
+        station.stop()
+    assert station.proc.returncode == 0, station.proc.stderr.read()
+
+
 def test_bad_requests_get_4xx_with_a_json_error(server):
     cases = [
         ("GET", "/api/nothing", None, None, 404),
