@@ -142,13 +142,7 @@ int main(int argc, char** argv) {
   bool json = false;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
-    auto next = [&]() -> const char* {
-      if (i + 1 >= argc) {
-        std::fprintf(stderr, "%s needs a value\n", a.c_str());
-        std::exit(1);
-      }
-      return argv[++i];
-    };
+    auto next = [&] { return posecal_bench::option_value(argc, argv, &i); };
     if (a == "--runs")
       runs = std::max(1, std::atoi(next()));
     else if (a == "--seed")

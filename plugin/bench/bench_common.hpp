@@ -46,6 +46,15 @@ inline bool converged(posecal_session* s) {
   return status_json(s).find("\"state\":\"converged\"") != std::string::npos;
 }
 
+// The value after option argv[*i] (advancing *i to it); exits 1 naming the option if none follows.
+inline const char* option_value(int argc, char** argv, int* i) {
+  if (*i + 1 >= argc) {
+    std::fprintf(stderr, "%s needs a value\n", argv[*i]);
+    std::exit(1);
+  }
+  return argv[++*i];
+}
+
 // The q-quantile (0..1) of v, linear between neighbours; 0 for an empty v.
 inline double quantile(std::vector<double> v, double q) {
   if (v.empty()) return 0;

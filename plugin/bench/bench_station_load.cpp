@@ -198,13 +198,7 @@ int main(int argc, char** argv) {
   double window_s = 12;        // each camera count runs this long
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
-    auto next = [&]() -> const char* {
-      if (i + 1 >= argc) {
-        std::fprintf(stderr, "%s needs a value\n", a.c_str());
-        std::exit(1);
-      }
-      return argv[++i];
-    };
+    auto next = [&] { return posecal_bench::option_value(argc, argv, &i); };
     if (a == "--sequences")
       sequences = std::max(1, std::atoi(next()));
     else if (a == "--seed")
