@@ -51,8 +51,7 @@ ModelFile parse_mrcal(const std::string& path, std::string_view text) {
     n_dist = std::strtoul(name.c_str() + prefix.size(), nullptr, 10);
   } else {
     f.fail(lens, "'lensmodel' '" + name + "'",
-           "is not read: posecal's lens models are LENSMODEL_OPENCV4/5 and PINHOLE (and "
-           "OPENCV8/12 with the added coefficients zero)");
+           "is not read: posecal reads LENSMODEL_OPENCV4, OPENCV5, OPENCV8, OPENCV12 and PINHOLE");
   }
   const std::vector<double> intrinsics =
       f.numbers(f.need(root, "intrinsics", ""), "'intrinsics'", 4 + n_dist, 4 + n_dist);

@@ -350,9 +350,9 @@ const std::set<std::string>& known_keys() {
   static const std::set<std::string> keys = {
       // posecal
       "calibration_time", "nr_of_frames", "image_width", "image_height", "lens_model",
-      "camera_matrix", "distortion_coefficients", "avg_reprojection_error", "intrinsic_names",
-      "std_deviations_intrinsics", "intrinsics_covariance", "expected_error_px", "target",
-      "camera_uri", "camera_id", "converged", "interrupted", kModelFileEndKey,
+      "distortion_model", "camera_matrix", "distortion_coefficients", "avg_reprojection_error",
+      "intrinsic_names", "std_deviations_intrinsics", "intrinsics_covariance", "expected_error_px",
+      "target", "camera_uri", "camera_id", "converged", "interrupted", kModelFileEndKey,
       // OpenCV's calibration sample
       "board_width", "board_height", "square_size", "aspectRatio", "flags", "flagValue",
       "fisheye_model", "per_view_reprojection_errors", "extrinsic_parameters", "image_points",
@@ -404,7 +404,9 @@ std::vector<double> read_matrix(const std::string& path, const cv::FileNode& n, 
   }
   *rows = static_cast<int>(r);
   *cols = static_cast<int>(c);
-  if (*rows < 1 || *cols < 1 || *rows > 16 || *cols > 16 ||
+  // No matrix of a model file is larger than the covariance of the richest lens model.
+  constexpr int kMaxSide = kMaxIntrinsics;
+  if (*rows < 1 || *cols < 1 || *rows > kMaxSide || *cols > kMaxSide ||
       data.size() != static_cast<size_t>(*rows) * static_cast<size_t>(*cols)) {
     bad_file(path, what + "has " + std::to_string(data.size()) + " data values for " +
                        std::to_string(*rows) + "x" + std::to_string(*cols));
@@ -427,19 +429,22 @@ int read_size(const std::string& path, const cv::FileNode& root, const char* key
   return static_cast<int>(v);
 }
 
-// lens_model names a model of the lens table, the one the coefficients give.
-void check_lens_model(const std::string& path, const cv::FileNode& n, LensModel deduced) {
+// lens_model (or distortion_model, its name for other tools) names a model of the lens table,
+// the one the coefficients give.
+void check_lens_model(const std::string& path, const cv::FileNode& n, const std::string& key,
+                      LensModel deduced) {
   std::string names;
   for (const LensModel m : lens_models()) {
     names += std::string(names.empty() ? "" : ", ") + lens_model_name(m);
   }
   const std::string value = n.isString() ? n.string() : std::string();
   const std::optional<LensModel> named = lens_model_from_name(value);
-  if (!named.has_value()) bad_file(path, "'lens_model' '" + value + "' is not one of: " + names);
+  if (!named.has_value()) bad_file(path, "'" + key + "' '" + value + "' is not one of: " + names);
   const LensModel m = named.value_or(deduced);
   if (m != deduced) {
-    bad_file(path, "'lens_model' " + value + " does not match the distortion_coefficients (" +
-                       lens_model_name(deduced) + ")");
+    bad_file(path, "'" + key + "' " + value + " does not match the distortion_coefficients (" +
+                       std::to_string(num_distortion_params(deduced)) +
+                       " coefficients: " + lens_model_name(deduced) + ")");
   }
 }
 
@@ -518,14 +523,22 @@ ModelFile model_from(const std::string& path, const cv::FileNode& root) {
     bad_file(path, "'camera_matrix' must be [fx s cx; 0 fy cy; 0 0 1]");
   }
   if (dr != 1 && dc != 1) bad_file(path, "'distortion_coefficients' is not a vector");
+  // OpenCV's calibration sample marks its fisheye results; their 4 coefficients are not the
+  // pinhole model's.
+  if (const cv::FileNode f = root["fisheye_model"];
+      !f.empty() && f.isInt() && static_cast<int>(f) != 0) {
+    bad_file(path,
+             "is a fisheye calibration (fisheye_model: " + std::to_string(static_cast<int>(f)) +
+                 "); posecal reads OpenCV's pinhole models (4, 5, 8, 12 or 14 coefficients) only");
+  }
   ModelFile file;
   try {
     file.model = CameraModel::from_opencv(w, h, cv::Matx33d(k.data()), d);
   } catch (const Error& e) {
     throw Error(e.code(), "camera model file '" + path + "': " + e.what());
   }
-  if (!root["lens_model"].empty()) {
-    check_lens_model(path, root["lens_model"], file.model.lens_model());
+  for (const char* key : {"lens_model", "distortion_model"}) {
+    if (!root[key].empty()) check_lens_model(path, root[key], key, file.model.lens_model());
   }
   std::string why;
   if (!file.model.is_valid(&why)) bad_file(path, why);
@@ -583,6 +596,7 @@ std::string compose_opencv(const std::string& path, const CameraModel& model,
   fs << "image_width" << model.width();
   fs << "image_height" << model.height();
   fs << "lens_model" << std::string(lens_model_name(model.lens_model()));
+  fs << "distortion_model" << std::string(lens_model_name(model.lens_model()));
   fs << "camera_matrix" << cv::Mat(model.camera_matrix());
   fs << "distortion_coefficients" << row_matrix(model.distortion_coefficients(), 1);
   if (extras.avg_reprojection_error >= 0) {

@@ -96,9 +96,10 @@ ModelFile parse_ros(const std::string& path, std::string_view text) {
   const std::string distortion =
       model_node ? f.string(*model_node, "'distortion_model'") : std::string("plumb_bob");
   if (distortion != "plumb_bob" && distortion != "rational_polynomial") {
-    bad_file(path, "'distortion_model' '" + distortion +
-                       "' is not read: posecal's lens models are plumb_bob (and "
-                       "rational_polynomial with k4 = k5 = k6 = 0)");
+    bad_file(
+        path,
+        "'distortion_model' '" + distortion +
+            "' is not read: posecal reads plumb_bob (opencv5) and rational_polynomial (opencv8)");
   }
   const size_t expected = distortion == "plumb_bob" ? 5 : 8;
   if (D.size() != expected) {

@@ -42,27 +42,15 @@ CameraModel CameraModel::from_opencv(int width, int height, const cv::Matx33d& K
                 "distortion_coefficients must have 4, 5, 8, 12 or 14 entries, got " +
                     std::to_string(dist.size()));
   }
-  // The smallest model of the table whose OpenCV vector holds every non-zero coefficient (OpenCV's
-  // models are prefixes of its 14-coefficient vector).
-  int significant = 0;
-  for (size_t i = 0; i < dist.size(); ++i)
-    if (dist[i] != 0.0) significant = static_cast<int>(i) + 1;
-  std::optional<LensModel> model;
-  int model_count = 0;
-  for (const LensModel m : lens_models()) {
-    const int n = with_lens_model(m, [](auto s) { return decltype(s)::kOpenCVCoefficients; });
-    if (n >= std::max(significant, 1) && (!model || n < model_count)) model = m, model_count = n;
-  }
+  // The count says the model (4 coefficients: opencv5 with k3 = 0), as OpenCV's own functions
+  // read the vector.
+  const int count = static_cast<int>(dist.size());
+  const std::optional<LensModel> model = lens_model_of_opencv_count(count == 4 ? 5 : count);
   if (!model) {
-    int largest = 0;
-    for (const LensModel m : lens_models())
-      largest = std::max(largest, with_lens_model(m, [](auto s) { return decltype(s)::kOpenCVCoefficients; }));
-    size_t first = static_cast<size_t>(largest);
-    while (first < dist.size() && dist[first] == 0.0) ++first;
-    throw Error(ErrorCode::kUnsupported,
-                "distortion coefficient " + std::to_string(first) +
-                    " is non-zero: rational/thin-prism/tilt models are not supported yet");
+    throw Error(ErrorCode::kUnsupported, "no lens model holds an OpenCV distortion vector of " +
+                                             std::to_string(count) + " coefficients");
   }
+  const int model_count = num_distortion_params(*model);
   if (K(0, 1) != 0.0) {
     throw Error(ErrorCode::kUnsupported, "camera_matrix has skew; the model has no skew term");
   }

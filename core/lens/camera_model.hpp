@@ -47,9 +47,9 @@ class CameraModel {
   // OpenCV form of the model (for cv::projectPoints, cv::solvePnP ...).
   cv::Matx33d camera_matrix() const;
   std::vector<double> distortion_coefficients() const;
-  // Builds a model from OpenCV's K and distortion vector (4, 5, 8, 12 or 14 coefficients): the
-  // smallest model of the lens table that holds every non-zero coefficient (4 coefficients: k3
-  // is 0). Throws Error(kUnsupported) if no model does, or K has skew.
+  // Builds a model from OpenCV's K and distortion vector: its length says the model (4 or 5:
+  // opencv5, 4 with k3 = 0; 8, 12, 14: opencv8, opencv12, opencv14), as cv::projectPoints reads
+  // it. Throws Error(kInvalidArgument) for another length, Error(kUnsupported) if K has skew.
   static CameraModel from_opencv(int width, int height, const cv::Matx33d& K,
                                  const std::vector<double>& dist);
 

@@ -24,11 +24,12 @@
 
 #include "common/error.hpp"
 #include "lens/opencv5.hpp"
+#include "lens/opencv_full.hpp"
 
 namespace posecal {
 
 // X(Model) for each model struct of namespace lens.
-#define POSECAL_LENS_MODELS(X) X(OpenCV5)
+#define POSECAL_LENS_MODELS(X) X(OpenCV5) X(OpenCV8) X(OpenCV12) X(OpenCV14)
 
 enum class LensModel {
 #define POSECAL_LENS_ENUM(M) k##M,

@@ -22,8 +22,20 @@ const std::string kData = std::string(POSECAL_SOURCE_DIR) + "/data/";
 // projection, derivative, unprojection, distortion-map and file tests below run on each, and
 // EveryLensModelHasASample fails until a new model adds its sample here.
 std::vector<CameraModel> sample_models() {
+  // A wide-angle rational lens in the form OpenCV's calibrations take (numerator and denominator
+  // both large, barrel overall), then with thin prism and a tilted sensor (tau about 0.5 degrees).
+  const std::vector<double> rational{0.8, -0.1, 0.001, -0.002, 0.02, 1.1, 0.05, 0.01};
+  const std::vector<double> prism{0.002, -0.001, 0.0015, 0.0005};
+  const std::vector<double> tilt{0.009, -0.007};
+  auto model = [](LensModel lens, std::vector<std::vector<double>> parts) {
+    std::vector<double> p{1000, 1010, 650, 350};
+    for (const auto& part : parts) p.insert(p.end(), part.begin(), part.end());
+    return CameraModel(1280, 720, lens, p);
+  };
   return {
-      CameraModel::opencv5(1280, 720, 1000, 1010, 650, 350, {-0.25, 0.12, 0.001, -0.002, -0.02})};
+      CameraModel::opencv5(1280, 720, 1000, 1010, 650, 350, {-0.25, 0.12, 0.001, -0.002, -0.02}),
+      model(LensModel::kOpenCV8, {rational}), model(LensModel::kOpenCV12, {rational, prism}),
+      model(LensModel::kOpenCV14, {rational, prism, tilt})};
 }
 
 CameraModel strong_model() { return sample_models().front(); }
@@ -100,6 +112,49 @@ TEST(CameraModel, JacobiansMatchFiniteDifferences) {
   for (const CameraModel& m : sample_models()) {
     SCOPED_TRACE(lens_model_name(m.lens_model()));
     expect_jacobians_match_finite_differences(m);
+  }
+}
+
+// The hand-written derivatives every model supplies (M::project_jacobians, used by the
+// information maths of pose selection) against central differences of the projection, at points
+// all over the image.
+TEST(CameraModel, ModelDerivativesMatchFiniteDifferences) {
+  for (const CameraModel& m : sample_models()) {
+    SCOPED_TRACE(lens_model_name(m.lens_model()));
+    const int n = m.num_params();
+    for (const Eigen::Vector3d& p :
+         {Eigen::Vector3d(0.21, -0.13, 0.9), Eigen::Vector3d(-0.55, 0.3, 1.0),
+          Eigen::Vector3d(0.6, 0.33, 0.95), Eigen::Vector3d(0.0, 0.0, 2.0)}) {
+      double u, v;
+      Eigen::Matrix<double, 2, 3> Jc;
+      Eigen::Matrix<double, 2, Eigen::Dynamic> Ji(2, n);
+      with_lens_model(m.lens_model(), [&](auto lm) {
+        decltype(lm)::project_jacobians(m.params().data(), p, &u, &v, &Jc, Ji.data());
+      });
+      Eigen::Vector2d uv;
+      ASSERT_TRUE(m.project(p, &uv));
+      EXPECT_NEAR(u, uv.x(), 1e-9);
+      EXPECT_NEAR(v, uv.y(), 1e-9);
+      const double h = 1e-6;
+      for (int k = 0; k < 3; ++k) {
+        Eigen::Vector3d a = p, b = p;
+        a[k] += h, b[k] -= h;
+        Eigen::Vector2d ua, ub;
+        m.project(a, &ua), m.project(b, &ub);
+        const Eigen::Vector2d fd = (ua - ub) / (2 * h);
+        EXPECT_NEAR(fd.x(), Jc(0, k), 1e-5 * (1 + std::abs(fd.x()))) << "d/dp " << k;
+        EXPECT_NEAR(fd.y(), Jc(1, k), 1e-5 * (1 + std::abs(fd.y()))) << "d/dp " << k;
+      }
+      for (int k = 0; k < n; ++k) {
+        CameraModel a = m, b = m;
+        a.params()[k] += h, b.params()[k] -= h;
+        Eigen::Vector2d ua, ub;
+        a.project(p, &ua), b.project(p, &ub);
+        const Eigen::Vector2d fd = (ua - ub) / (2 * h);
+        EXPECT_NEAR(fd.x(), Ji(0, k), 1e-5 * (1 + std::abs(fd.x()))) << m.param_names()[k];
+        EXPECT_NEAR(fd.y(), Ji(1, k), 1e-5 * (1 + std::abs(fd.y()))) << m.param_names()[k];
+      }
+    }
   }
 }
 
@@ -290,5 +345,30 @@ TEST(CameraModel, BadFilesGiveClearErrors) {
            "   data: [ 0., 0., 0., 0., 0. ]\n";
     expect_error(dir + "/nan.yml", ErrorCode::kInvalidArgument, "not finite");
   }
+  // A coefficient count that names no model, a model name the coefficients contradict, and
+  // OpenCV's fisheye calibration read as a pinhole one.
+  const std::string head =
+      "%YAML:1.0\n---\nimage_width: 640\nimage_height: 480\ncamera_matrix: !!opencv-matrix\n"
+      "   rows: 3\n   cols: 3\n   dt: d\n   data: [ 500., 0., 320., 0., 500., 240., 0., 0., 1. ]\n";
+  auto dist = [](int n) {
+    std::string d =
+        "distortion_coefficients: !!opencv-matrix\n   rows: 1\n   cols: " + std::to_string(n) +
+        "\n   dt: d\n   data: [ 0.1";
+    for (int i = 1; i < n; ++i) d += ", 0.";
+    return d + " ]\n";
+  };
+  std::ofstream(dir + "/six.yml") << head << dist(6);
+  expect_error(dir + "/six.yml", ErrorCode::kInvalidArgument, "4, 5, 8, 12 or 14 entries, got 6");
+  std::ofstream(dir + "/named.yml") << head << "distortion_model: opencv8\n" << dist(5);
+  expect_error(dir + "/named.yml", ErrorCode::kInvalidArgument,
+               "'distortion_model' opencv8 does not match the distortion_coefficients (5 "
+               "coefficients: opencv5)");
+  std::ofstream(dir + "/unknown.yml") << head << "distortion_model: fisheye9\n" << dist(5);
+  expect_error(dir + "/unknown.yml", ErrorCode::kInvalidArgument,
+               "'fisheye9' is not one of: opencv5, opencv8");
+  std::ofstream(dir + "/fisheye.yml") << head << "fisheye_model: 1\n" << dist(4);
+  expect_error(dir + "/fisheye.yml", ErrorCode::kInvalidArgument, "fisheye_model: 1");
+  std::ofstream(dir + "/fourteen.yml") << head << dist(14);
+  EXPECT_EQ(read_camera_model(dir + "/fourteen.yml").lens_model(), LensModel::kOpenCV14);
   EXPECT_THROW(CameraModel(640, 480, LensModel::kOpenCV5, {1, 2, 3}), Error);
 }

@@ -49,6 +49,14 @@ CameraModel model_with_k3() {
   return CameraModel::opencv5(1280, 720, 1000.123456789, 1010.987654321, 650.5, 350.25,
                               {-0.25, 0.12, 0.001, -0.002, -0.02});
 }
+// The richer OpenCV models: rational, thin prism, tilted sensor (OpenCV's order).
+CameraModel model_of(LensModel lens) {
+  const std::vector<double> all{0.8,  -0.1,  0.001,  -0.002, 0.02,   1.1,   0.05,
+                                0.01, 0.002, -0.001, 0.0015, 0.0005, 0.009, -0.007};
+  std::vector<double> p{1000.5, 1010.25, 650.5, 350.25};
+  p.insert(p.end(), all.begin(), all.begin() + num_distortion_params(lens));
+  return CameraModel(1280, 720, lens, p);
+}
 CameraModel model_without_k3() {
   return CameraModel::opencv5(752, 480, 458.123, 457.456, 367.891, 248.345,
                               {-0.2841, 0.0822, 0.00031, -0.00012, 0});
@@ -139,6 +147,12 @@ TEST(Formats, EveryFormatRoundTrips) {
       {ModelFormat::kRos, "rt_ros.yaml", model_with_k3()},
       {ModelFormat::kMrcal, "rt.cameramodel", model_with_k3()},
       {ModelFormat::kKalibr, "rt_kalibr.yaml", model_without_k3()},
+      {ModelFormat::kOpenCV, "rt8.yml", model_of(LensModel::kOpenCV8)},
+      {ModelFormat::kOpenCV, "rt12.json", model_of(LensModel::kOpenCV12)},
+      {ModelFormat::kOpenCV, "rt14.xml", model_of(LensModel::kOpenCV14)},
+      {ModelFormat::kRos, "rt8_ros.yaml", model_of(LensModel::kOpenCV8)},
+      {ModelFormat::kMrcal, "rt8.cameramodel", model_of(LensModel::kOpenCV8)},
+      {ModelFormat::kMrcal, "rt12.cameramodel", model_of(LensModel::kOpenCV12)},
   };
   for (const Case& c : cases) {
     SCOPED_TRACE(c.file);
@@ -152,6 +166,20 @@ TEST(Formats, EveryFormatRoundTrips) {
     EXPECT_EQ(r.model.params(), c.model.params());
     EXPECT_LT(max_projection_difference(c.model, r.model), 1e-9);
     std::filesystem::remove(path);
+  }
+  // Formats without a name for a model refuse it and write nothing.
+  for (const auto& [format, lens] : std::vector<std::pair<ModelFormat, LensModel>>{
+           {ModelFormat::kRos, LensModel::kOpenCV12},
+           {ModelFormat::kRos, LensModel::kOpenCV14},
+           {ModelFormat::kMrcal, LensModel::kOpenCV14},
+           {ModelFormat::kKalibr, LensModel::kOpenCV8},
+           {ModelFormat::kHalcon, LensModel::kOpenCV8}}) {
+    const std::string path = temp_path("refused.txt");
+    std::filesystem::remove(path);
+    expect_invalid([&] { write_camera_model(path, model_of(lens), {}, format); },
+                   {model_format_name(format), lens_model_name(lens), "nothing written"},
+                   lens_model_name(lens));
+    EXPECT_FALSE(std::filesystem::exists(path));
   }
   // By extension alone: .cameramodel is mrcal, .xml OpenCV.
   write_camera_model(temp_path("ext.cameramodel"), model_with_k3());
@@ -327,12 +355,17 @@ TEST(Formats, RosBadInput) {
                             replaced(good, "camera_name: bench_cam_left", "camera_name: &a x")),
                  {"anchors"});
   expect_refused(write_text("docs_ros.yaml", good + "---\n" + good), {"more than one document"});
-  expect_refused(
+  // rational_polynomial is opencv8; with 5 coefficients it is refused naming the count.
+  const ModelFile rational = read_model_file(
       write_text("rational_ros.yaml",
                  replaced(replaced(good, "plumb_bob", "rational_polynomial"),
                           "cols: 5\n  data: [-0.318200, 0.141700, 0.000820, -0.000310, -0.031900]",
-                          "cols: 8\n  data: [-0.3, 0.1, 0, 0, -0.03, 0.2, 0, 0]")),
-      {"'distortion_coefficients'", "not supported"});
+                          "cols: 8\n  data: [-0.3, 0.1, 0, 0, -0.03, 0.2, 0, 0]")));
+  EXPECT_EQ(rational.model.lens_model(), LensModel::kOpenCV8);
+  EXPECT_EQ(rational.model.params()[9], 0.2);
+  expect_refused(
+      write_text("rational5_ros.yaml", replaced(good, "plumb_bob", "rational_polynomial")),
+      {"'distortion_coefficients' has 5 values; rational_polynomial has 8"});
   std::string deep = "image_width: ";
   for (int i = 0; i < 100; ++i) deep += "[";
   expect_refused(write_text("deep_ros.yaml", deep + "\n"), {"deeper than the limit of 64"});
@@ -362,6 +395,12 @@ TEST(Formats, MrcalSampleReads) {
       "pinhole.cameramodel", replaced(replaced(text, "OPENCV5", "PINHOLE"),
                                       " -0.0912, 0.0731, 0.00042, -0.00018, -0.0123,", "")));
   EXPECT_EQ(pinhole.model.params()[4], 0.0);
+  // OPENCV8 is opencv8, its k4 where OpenCV has it.
+  const ModelFile eight =
+      read_model_file(write_text("eight.cameramodel", replaced(replaced(text, "OPENCV5", "OPENCV8"),
+                                                               "-0.0123,", "-0.0123, 0.5, 0, 0,")));
+  EXPECT_EQ(eight.model.lens_model(), LensModel::kOpenCV8);
+  EXPECT_EQ(eight.model.params()[9], 0.5);
 }
 
 TEST(Formats, MrcalBadInput) {
@@ -370,9 +409,8 @@ TEST(Formats, MrcalBadInput) {
   expect_refused(
       write_text("cahvor.cameramodel", replaced(good, "LENSMODEL_OPENCV5", "LENSMODEL_CAHVOR")),
       {"'lensmodel' 'LENSMODEL_CAHVOR'"});
-  expect_refused(write_text("opencv8.cameramodel", replaced(replaced(good, "OPENCV5", "OPENCV8"),
-                                                            "-0.0123,", "-0.0123, 0.5, 0, 0,")),
-                 {"'intrinsics'", "not supported"});
+  expect_refused(write_text("opencv8.cameramodel", replaced(good, "OPENCV5", "OPENCV8")),
+                 {"'intrinsics'", "has 9 values; expected 12"});
   expect_refused(write_text("count.cameramodel", replaced(good, " -0.0123,", "")),
                  {"'intrinsics'", "8 values"});
   expect_refused(write_text("type.cameramodel", replaced(good, "2712.5", "'2712.5'")),

@@ -23,16 +23,16 @@ except ImportError as e:
 TOLERANCE_PX = 1e-6
 
 
-def posecal_grid(grid_tool, mode, path):
-    out = subprocess.run([grid_tool, mode, path], check=True, capture_output=True, text=True).stdout
+def posecal_grid(grid_tool, mode, path, *extra):
+    out = subprocess.run([grid_tool, mode, path, *extra], check=True, capture_output=True, text=True).stdout
     w, h = (int(v) for v in out.splitlines()[0].split()[1:3])
     return (w, h), np.loadtxt(io.StringIO(out), comments="#")
 
 
-def compare(label, path, size, grid):
+def compare(label, path, size, grid, expected="LENSMODEL_OPENCV5"):
     model = mrcal.cameramodel(path)
     lensmodel, intrinsics = model.intrinsics()
-    assert lensmodel == "LENSMODEL_OPENCV5", lensmodel
+    assert lensmodel == expected, lensmodel
     assert tuple(model.imagersize()) == size, (model.imagersize(), size)
     assert np.all(model.extrinsics_rt_fromref() == 0), model.extrinsics_rt_fromref()
     q = mrcal.project(grid[:, 0:3], lensmodel, intrinsics)
@@ -53,6 +53,11 @@ def main():
     sample = os.path.join(work, "sample.cameramodel")
     size, grid = posecal_grid(grid_tool, "--write", sample)
     compare("sample model", sample, size, grid)
+    # OpenCV's rational and thin-prism models are mrcal's LENSMODEL_OPENCV8 and OPENCV12.
+    for lens, name in (("opencv8", "LENSMODEL_OPENCV8"), ("opencv12", "LENSMODEL_OPENCV12")):
+        path = os.path.join(work, lens + ".cameramodel")
+        size, grid = posecal_grid(grid_tool, "--write", path, lens)
+        compare(lens + " sample model", path, size, grid, name)
 
     # A calibration written by the command line, read by both.
     sim = os.path.join(work, "simulate.cameramodel")

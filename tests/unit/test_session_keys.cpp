@@ -161,6 +161,27 @@ TEST(SessionKeys, ChoicesRoundTrip) {
   EXPECT_EQ(o.engine.calibration.fixed, (std::vector<std::string>{"k2", "k3"}));
 }
 
+// "lens_model"'s choices are the lens-model table, in its order (the member is the LensModel
+// enum, set to the choice's index).
+TEST(SessionKeys, LensModelChoicesAreTheLensTable) {
+  std::string table;
+  for (const LensModel m : lens_models()) {
+    if (!table.empty()) table += '|';
+    table += lens_model_name(m);
+  }
+  bool found = false;
+  for (const SessionKeyInfo& k : session_keys()) {
+    if (std::string(k.key) != "lens_model") continue;
+    found = true;
+    EXPECT_EQ(std::string(k.choices), table);
+  }
+  EXPECT_TRUE(found);
+  SessionOptions o;
+  set_session_key(&o, "lens_model", std::string("opencv14"));
+  EXPECT_EQ(o.engine.calibration.lens_model, LensModel::kOpenCV14);
+  EXPECT_THROW(set_session_key(&o, "lens_model", std::string("fisheye9")), Error);
+}
+
 TEST(SessionKeys, EveryKeyIsDocumentedWhereHostsLook) {
   const std::string header = read_text("plugin/include/posecal.h");
   const std::string c_api = read_text("docs/c-api.md");

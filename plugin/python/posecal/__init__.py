@@ -379,7 +379,7 @@ class Context(_Handle):
         """Opens a calibration session on a camera. config: the keys of posecal_session_open
         (core/session/session_keys.def): method, target, operator, convergence_threshold, max_keyframes,
         jaccard_threshold, still_motion_px, track_board, constraint_factor, target_timeout_frames,
-        pose_candidates, lock_settings, max_tilt_deg, fixed, convergence_measure,
+        pose_candidates, lock_settings, max_tilt_deg, lens_model, fixed, convergence_measure,
         measured_convergence, candidate_score, view_candidates, view_must_serve_target,
         board_timeout_s, accuracy_px, journal, journal_images, resume, spec, records, records_spool,
         fleet_outlier_probability, prior, run_id, station_id, operator_id, lens_id."""
