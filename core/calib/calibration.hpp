@@ -46,6 +46,11 @@ struct CalibrationOptions {
   bool zero_tangential = false;      // p1 = p2 = 0, fixed
   bool zero_distortion = false;      // every distortion coefficient 0, fixed
   std::vector<std::string> fixed;    // further parameters held fixed, by name ("k3", "fy", ...)
+  // Parameters held at their starting value (0 when cold) when the views do not determine them,
+  // instead of failing: on a rank deficiency whose weakest direction one of these dominates, it
+  // is held and the bundle adjustment run again (CalibrationResult::held names each). E.g. the
+  // rational coefficients k4..k6 of a lens with little distortion, where d/dk4 = -d/dk1.
+  std::vector<std::string> hold_if_undetermined;
   int max_iterations = 100;          // Levenberg-Marquardt iterations
   double function_tolerance = 1e-12;
   double parameter_tolerance = 1e-12;
@@ -71,7 +76,11 @@ const char* solver_termination_name(SolverTermination t);  // "convergence", "no
 struct CalibrationResult {
   CameraModel model;
   std::vector<Pose> poses;  // T_cam_board per frame
-  std::vector<bool> fixed;  // per intrinsic
+  std::vector<bool> fixed;  // per intrinsic (those held below included)
+  // The parameters of CalibrationOptions::hold_if_undetermined the views did not determine, in
+  // the order they were held, with the reason (the rank deficiency that named each).
+  std::vector<std::string> held;
+  std::string held_reason;
   int num_points = 0;
   int num_unknowns = 0;  // free intrinsics + 6 per frame
   int iterations = 0;

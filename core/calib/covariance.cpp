@@ -124,16 +124,18 @@ void check_determined(const CalibrationResult& res, const CovarianceInput& in, c
     // Name the intrinsic that dominates the weakest direction.
     int worst = 0;
     double best = -1;
+    std::vector<double> direction(n_intr, 0.0);
     for (int a = 0; a < static_cast<int>(amb_of_tangent.size()); ++a) {
+      if (amb_of_tangent[a] < n_intr) direction[amb_of_tangent[a]] = weakest[a];
       if (amb_of_tangent[a] < n_intr && std::abs(weakest[a]) > best) {
         best = std::abs(weakest[a]);
         worst = amb_of_tangent[a];
       }
     }
-    throw Error(ErrorCode::kDegenerate,
-                "calibration: the views do not determine every parameter (rank deficiency " +
-                    std::to_string(res.rank_deficiency) + ", weakest: " + names[worst] +
-                    "); add views tilted towards the camera");
+    throw Undetermined("calibration: the views do not determine every parameter (rank deficiency " +
+                           std::to_string(res.rank_deficiency) + ", weakest: " + names[worst] +
+                           "); add views tilted towards the camera",
+                       std::move(direction));
   }
   for (int i : {0, 1}) {
     if (in.fixed[i] && in.aspect == 0) continue;

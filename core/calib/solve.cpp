@@ -43,6 +43,11 @@ bool CalibrationOptions::is_valid(std::string* error) const {
       return fail("unknown parameter '" + f + "' in fixed list");
     }
   }
+  for (const auto& h : hold_if_undetermined) {
+    if (std::find(names.begin(), names.end(), h) == names.end()) {
+      return fail("unknown parameter '" + h + "' in the list of those held when undetermined");
+    }
+  }
   if (prior) {
     const IntrinsicsPrior& p = *prior;
     const int m = static_cast<int>(p.names.size());
@@ -375,8 +380,56 @@ ceres::Solver::Summary solve_problem(const CalibrationOptions& options, ceres::P
 
 }  // namespace
 
+namespace {
+
+CalibrationResult calibrate_once(const std::vector<Observation>& frames, cv::Size image_size,
+                                 const CalibrationOptions& options, const WarmStart* warm_start);
+
+}  // namespace
+
 CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size image_size,
                             const CalibrationOptions& options, const WarmStart* warm_start) {
+  if (options.hold_if_undetermined.empty())
+    return calibrate_once(frames, image_size, options, warm_start);
+  // Hold the parameters a rank deficiency names, one at a time, while they are among those that
+  // may be held.
+  CalibrationOptions held = options;
+  std::vector<std::string> names;
+  std::string reason;
+  const std::vector<std::string>& all = intrinsic_names(options.lens_model);
+  while (true) {
+    try {
+      CalibrationResult r = calibrate_once(frames, image_size, held, warm_start);
+      r.held = names;
+      r.held_reason = reason;
+      return r;
+    } catch (const calib_internal::Undetermined& e) {
+      // The holdable parameter that moves most along the undetermined direction (also when
+      // parameters that may not be held dominate it: holding a small part of the direction often
+      // removes it; if not, the next round holds the next, until none is left).
+      const std::vector<double>& d = e.direction();
+      int pick = -1;
+      for (int i = 0; i < static_cast<int>(d.size()); ++i) {
+        const auto& allowed = options.hold_if_undetermined;
+        if (std::find(allowed.begin(), allowed.end(), all[i]) == allowed.end() ||
+            std::find(names.begin(), names.end(), all[i]) != names.end()) {
+          continue;
+        }
+        if (pick < 0 || std::abs(d[i]) > std::abs(d[pick])) pick = i;
+      }
+      if (pick < 0) throw;
+      const std::string& name = all[pick];
+      names.push_back(name);
+      held.fixed.push_back(name);
+      if (reason.empty()) reason = e.what();
+    }
+  }
+}
+
+namespace {
+
+CalibrationResult calibrate_once(const std::vector<Observation>& frames, cv::Size image_size,
+                                 const CalibrationOptions& options, const WarmStart* warm_start) {
   quiet_ceres_logging();
   const auto t0 = std::chrono::steady_clock::now();
   std::string why;
@@ -450,6 +503,8 @@ CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size ima
       std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - t0).count();
   return res;
 }
+
+}  // namespace
 
 CalibrationResult prior_result(cv::Size image_size, const CalibrationOptions& options) {
   std::string why;

@@ -36,9 +36,23 @@ struct CovarianceInput {
   int prior_rows = 0;  // the prior's rows on free parameters, after the points' (IntrinsicsPrior)
 };
 
+// The views leave a direction of the intrinsics undetermined (a rank deficiency); `direction`
+// holds its component on each intrinsic (0 for fixed ones; Jacobi-scaled, so comparable).
+// calibrate() holds the parameter of CalibrationOptions::hold_if_undetermined with the largest
+// component, else passes the error on.
+class Undetermined : public Error {
+ public:
+  Undetermined(const std::string& message, std::vector<double> direction)
+      : Error(ErrorCode::kDegenerate, message), direction_(std::move(direction)) {}
+  const std::vector<double>& direction() const { return direction_; }
+
+ private:
+  std::vector<double> direction_;
+};
+
 // Residual statistics, the covariance of eq. 5 and the degeneracy checks at the solution, into
-// *res (whose model is set). Throws Error(kDegenerate) naming the parameter the views cannot
-// determine.
+// *res (whose model is set). Throws Undetermined for a rank deficiency, Error(kDegenerate) for
+// another degeneracy, each naming the parameter the views cannot determine.
 void covariance_at_solution(ceres::Problem& problem, Solution& solution, const CovarianceInput& in,
                             CalibrationResult* res);
 

@@ -56,6 +56,20 @@ int num_distortion_params(LensModel model) { return static_cast<int>(info(model)
 
 const std::vector<std::string>& intrinsic_names(LensModel model) { return info(model).names; }
 
+const std::vector<std::string>& extension_parameters(LensModel model) {
+  static const std::vector<std::vector<std::string>> all = [] {
+    const std::vector<std::string>& base = intrinsic_names(LensModel::kOpenCV5);
+    std::vector<std::vector<std::string>> v;
+    for (const ModelInfo& i : table()) {
+      v.emplace_back();
+      for (const std::string& n : i.names)
+        if (std::find(base.begin(), base.end(), n) == base.end()) v.back().push_back(n);
+    }
+    return v;
+  }();
+  return all.at(static_cast<size_t>(model));
+}
+
 std::optional<LensModel> lens_model_of_opencv_count(int coefficients) {
   for (const ModelInfo& i : table())
     if (i.opencv_coefficients > 0 && i.opencv_coefficients == coefficients) return i.model;

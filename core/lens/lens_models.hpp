@@ -80,6 +80,9 @@ int num_distortion_params(LensModel model);
 inline int num_intrinsics(LensModel model) { return kNumPinholeParams + num_distortion_params(model); }
 // Names of all intrinsics, pinhole first.
 const std::vector<std::string>& intrinsic_names(LensModel model);
+// The parameters a model adds to opencv5's (k4..k6, s1..s4, tau_x, tau_y), in its order; empty
+// for opencv5. Pose selection holds them at 0 while the keyframes do not determine them.
+const std::vector<std::string>& extension_parameters(LensModel model);
 // The model holding an OpenCV distortion vector of `coefficients` entries exactly, if any.
 std::optional<LensModel> lens_model_of_opencv_count(int coefficients);
 

@@ -404,12 +404,18 @@ void CalibrationEngine::Impl::after_calibration() {
 bool CalibrationEngine::Impl::recalibrate() {
   // Warm-started from the previous solution.
   CalibrationResult now;
+  CalibrationOptions co = opt.calibration;
+  // The parameters a lens model adds to OpenCV's five (k4..k6, s1..s4, tau) are held at their
+  // value while the keyframes do not determine them, rather than refusing every keyframe: two
+  // views cannot determine 18 intrinsics, and a lens with little distortion never determines
+  // k4..k6 (at k4 = 0, d/dk4 = -d/dk1). The five are never held: the paper's behaviour.
+  co.hold_if_undetermined = extension_parameters(co.lens_model);
   try {
     if (result) {
       const WarmStart ws{result->model, result->poses};
-      now = calibrate(keyframes, size, opt.calibration, &ws);
+      now = calibrate(keyframes, size, co, &ws);
     } else {
-      now = calibrate(keyframes, size, opt.calibration);
+      now = calibrate(keyframes, size, co);
     }
   } catch (const Error& e) {
     keyframes.pop_back();
@@ -430,10 +436,27 @@ bool CalibrationEngine::Impl::recalibrate() {
   expected = posecal::expected_error(now);
   EngineEvent ke{EngineEvent::Kind::kCalibrated};
   ke.message = "rms " + std::to_string(now.rms_px) + " px, expected error " + std::to_string(expected->rms_px) + " px";
+  if (!now.held.empty()) {
+    std::string held;
+    for (const std::string& n : now.held) {
+      if (!held.empty()) held += ", ";
+      held += n;
+    }
+    ke.message += "; held at " + std::string(now.held.size() == 1 ? "its value" : "their values") +
+                  ": " + held + " (the keyframes do not determine " +
+                  (now.held.size() == 1 ? "it" : "them") + ")";
+  }
   emit(ke);
   if (prev && tgt >= 0) update_convergence(*prev, now, tgt);
-  for (int i = 0; i < estimate.num_params(); ++i)
-    if (now.fixed[i]) param_converged[i] = true;  // nothing to refine
+  const std::vector<std::string>& names = estimate.param_names();
+  for (int i = 0; i < estimate.num_params(); ++i) {
+    if (now.fixed[i]) {
+      param_converged[i] = true;  // nothing to refine
+    } else if (prev &&
+               std::find(prev->held.begin(), prev->held.end(), names[i]) != prev->held.end()) {
+      param_converged[i] = false;  // held until now, determined by this keyframe: refine it
+    }
+  }
   return true;
 }
 

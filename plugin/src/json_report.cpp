@@ -38,6 +38,9 @@ nlohmann::json calibration_json(const CalibrationResult& r) {
   j["std_unit"] = std_unit;
   j["index_of_dispersion"] = iod;
   j["fixed"] = fixed;
+  // Parameters the keyframes did not determine, held at their value (CalibrationResult::held).
+  j["held"] = r.held;
+  if (!r.held.empty()) j["held_reason"] = r.held_reason;
   j["rms"] = number(r.rms_px);
   j["eps_res"] = number(r.rms_px);
   j["residual_sigma"] = number(std::sqrt(r.residual_variance));

@@ -23,6 +23,7 @@ struct Case {
   CameraModel reference;
   int seeds;
   int checked_params = 9;  // parameters held to the 5-sigma honesty check
+  LensModel lens = LensModel::kOpenCV5;  // the model calibrated (the truth's by default)
   // The engine's defaults unless a case says otherwise.
   int view_candidates = EngineOptions{}.view_candidates;
   bool view_must_serve_target = EngineOptions{}.view_must_serve_target;
@@ -39,6 +40,7 @@ struct Run {
   bool has_result = false;
   std::vector<double> params, sigma;
   int keyframes = 0;
+  std::vector<std::string> held;
   unsigned long long frames = 0;
   double eps_gt = 0;
 };
@@ -60,6 +62,7 @@ Run run_one(const Case& c, int seed, OperatorKind op) {
   eo.view_candidates = c.view_candidates;
   eo.view_must_serve_target = c.view_must_serve_target;
   eo.convergence_measure = c.measure;
+  eo.calibration.lens_model = c.lens;
   eo.target_timeout_frames = (so.op.move_frames + so.op.hold_frames) * so.op.max_tries + 1;
   CalibrationSession s(make_sim_camera(so), eo);
   for (int f = 0; f < 1500 && !s.finished(); ++f) s.step(1000);
@@ -76,6 +79,7 @@ Run run_one(const Case& c, int seed, OperatorKind op) {
   r.params.assign(e.result()->model.params().begin(), e.result()->model.params().end());
   r.sigma.assign(e.result()->std_scaled.begin(), e.result()->std_scaled.end());
   r.eps_gt = ground_truth_error(so.truth, e.result()->model);
+  r.held = e.result()->held;
   return r;
 }
 
@@ -109,8 +113,11 @@ void run_case(const Case& c) {
       EXPECT_LT(std::abs(r.params[i] - r.truth.params()[i]), 5 * r.sigma[i] + 1e-12)
           << c.name << " seed " << r.seed << " " << who << " " << r.truth.param_names()[i];
     }
-    std::printf("%s seed %d %s: %s, %d keyframes, %llu frames, eps_gt %.3f px\n", c.name, r.seed, who, r.state.c_str(),
-                r.keyframes, r.frames, r.eps_gt);
+    std::string held;
+    for (const std::string& h : r.held) held += " " + h;
+    std::printf("%s seed %d %s: %s, %d keyframes, %llu frames, eps_gt %.3f px%s%s\n", c.name,
+                r.seed, who, r.state.c_str(), r.keyframes, r.frames, r.eps_gt,
+                held.empty() ? "" : ", held:", held.c_str());
   }
 }
 
@@ -126,6 +133,23 @@ TEST(ClosedLoop, IndustrialCameraWithStrongBarrelDistortion) {
 TEST(ClosedLoop, LongFocalLowDistortionCamera) {
   // 1600x1200, 50 mm lens: 8 degree field of view.
   run_case({"tele", CameraModel::opencv5(1600, 1200, 11300, 11300, 799.5, 599.5, {-0.02, 0.05, 0.0, 0.0, 0.0}), 4, 5});
+}
+
+TEST(ClosedLoop, WideAngleRationalCamera) {
+  // 2448x2048 with about 110 degrees horizontal field of view, OpenCV's rational model (the form
+  // its calibrations of such lenses take: numerator and denominator both large), calibrated as
+  // opencv8. The 5-sigma check covers the pinhole part: the rational coefficients are strongly
+  // correlated (k1 with k4, ...), their linearised sigma does not describe their error. Not yet
+  // checked: eps_gt, which scatters from 0.05 to 15.8 px over these four runs (the worst with k4
+  // and k5 held at 0 from the first keyframes on); pose selection for the rational terms is
+  // unfinished (issue 14).
+  Case c{
+      "wide-rational",
+      CameraModel(2448, 2048, LensModel::kOpenCV8,
+                  {1224, 1226, 1230.5, 1020.2, 1.5, 0.3, 0.0005, -0.0003, 0.01, 1.85, 0.6, 0.05}),
+      2, 4};
+  c.lens = LensModel::kOpenCV8;
+  run_case(c);
 }
 
 TEST(ClosedLoop, CamerasAroundTheC525WithRulePosesAndTheVarianceTest) {
