@@ -26,6 +26,16 @@ std::vector<Observation> observe(SyntheticCamera& sc, const std::vector<Pose>& p
   return out;
 }
 
+// The frames as cv::calibrateCamera takes them.
+void opencv_points(const std::vector<Observation>& frames,
+                   std::vector<std::vector<cv::Point3f>>* obj,
+                   std::vector<std::vector<cv::Point2f>>* img) {
+  for (const auto& f : frames) {
+    obj->emplace_back(f.board_points.begin(), f.board_points.end());
+    img->emplace_back(f.image_points.begin(), f.image_points.end());
+  }
+}
+
 RenderOptions noisy(uint64_t seed) {
   RenderOptions ro;
   ro.noise_sigma = 2.0;
@@ -64,10 +74,7 @@ TEST(Calibration, NoWorseThanOpenCVOnTheSameFrames) {
   const CalibrationResult r = calibrate(frames, truth.size());
   std::vector<std::vector<cv::Point3f>> obj;
   std::vector<std::vector<cv::Point2f>> img;
-  for (const auto& f : frames) {
-    obj.emplace_back(f.board_points.begin(), f.board_points.end());
-    img.emplace_back(f.image_points.begin(), f.image_points.end());
-  }
+  opencv_points(frames, &obj, &img);
   cv::Mat K, D, std_intr, std_extr, per_view;
   std::vector<cv::Mat> rv, tv;
   const double cv_rms =
@@ -131,10 +138,7 @@ TEST(Calibration, RicherModelsNoWorseThanOpenCV) {
       std::printf("%s held: %s\n", h.c_str(), r.held_reason.c_str());
     std::vector<std::vector<cv::Point3f>> obj;
     std::vector<std::vector<cv::Point2f>> img;
-    for (const auto& f : frames) {
-      obj.emplace_back(f.board_points.begin(), f.board_points.end());
-      img.emplace_back(f.image_points.begin(), f.image_points.end());
-    }
+    opencv_points(frames, &obj, &img);
     cv::Mat K, D;
     std::vector<cv::Mat> rv, tv;
     const double cv_rms = cv::calibrateCamera(obj, img, truth.size(), K, D, rv, tv, c.flags);
