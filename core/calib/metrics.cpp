@@ -1,10 +1,12 @@
 #include "calib/metrics.hpp"
 
+#include <Eigen/Dense>
 #include <cmath>
 #include <limits>
 
 #include "calib/pose_estimation.hpp"
 #include "common/error.hpp"
+#include "lens/geometry.hpp"
 
 namespace posecal {
 
@@ -67,6 +69,74 @@ double ground_truth_error_edges(const CameraModel& truth, const CameraModel& est
   return grid_error(truth, estimate, cols, rows, rms, [&](int i, int j) {
     return Eigen::Vector2d(i * (truth.width() - 1.0) / (cols - 1), j * (truth.height() - 1.0) / (rows - 1));
   });
+}
+
+double ground_truth_error_aligned(const CameraModel& truth, const CameraModel& estimate, int cols,
+                                  int rows, double* rotation_rad) {
+  if (cols < 1 || rows < 1) throw Error(ErrorCode::kInvalidArgument, "eps_gt: grid must be >= 1x1");
+  if (truth.size() != estimate.size()) {
+    throw Error(ErrorCode::kInvalidArgument, "eps_gt: models have different image sizes");
+  }
+  std::vector<Eigen::Vector3d> rays;
+  std::vector<Eigen::Vector2d> pixels;
+  for (int j = 0; j < rows; ++j) {
+    for (int i = 0; i < cols; ++i) {
+      const Eigen::Vector2d p((i + 0.5) * truth.width() / cols - 0.5,
+                              (j + 0.5) * truth.height() / rows - 0.5);
+      Eigen::Vector2d xn;
+      if (!truth.unproject(p, &xn)) continue;
+      rays.push_back(Eigen::Vector3d(xn.x(), xn.y(), 1.0).normalized());
+      pixels.push_back(p);
+    }
+  }
+  const double nan = std::numeric_limits<double>::quiet_NaN();
+  if (rays.empty()) return nan;
+  // Gauss-Newton on R <- exp([dw]x) R; d(R ray)/d(dw) = -[R ray]x.
+  Eigen::Matrix3d R = Eigen::Matrix3d::Identity();
+  auto cost = [&](const Eigen::Matrix3d& Rc) {
+    double ss = 0;
+    for (size_t k = 0; k < rays.size(); ++k) {
+      Eigen::Vector2d q;
+      if (!estimate.project(Rc * rays[k], &q)) return std::numeric_limits<double>::infinity();
+      ss += (q - pixels[k]).squaredNorm();
+    }
+    return ss;
+  };
+  double current = cost(R);
+  for (int it = 0; it < 20 && std::isfinite(current); ++it) {
+    Eigen::Matrix3d A = Eigen::Matrix3d::Zero();
+    Eigen::Vector3d b = Eigen::Vector3d::Zero();
+    for (size_t k = 0; k < rays.size(); ++k) {
+      const Eigen::Vector3d Rr = R * rays[k];
+      Eigen::Vector2d q;
+      Eigen::Matrix<double, 2, 3> Jp;
+      if (!estimate.project(Rr, &q, &Jp, nullptr)) continue;
+      Eigen::Matrix3d skew;
+      skew << 0, -Rr.z(), Rr.y(), Rr.z(), 0, -Rr.x(), -Rr.y(), Rr.x(), 0;
+      const Eigen::Matrix<double, 2, 3> J = -Jp * skew;
+      A += J.transpose() * J;
+      b += J.transpose() * (q - pixels[k]);
+    }
+    const Eigen::Vector3d dw = -A.ldlt().solve(b);
+    if (!dw.allFinite()) break;
+    const Eigen::Matrix3d next = rotation_from_vector(dw) * R;
+    const double c = cost(next);
+    if (!(c < current)) break;
+    R = next;
+    const bool small = current - c < 1e-12 * current;
+    current = c;
+    if (small) break;
+  }
+  if (rotation_rad) *rotation_rad = Eigen::AngleAxisd(R).angle();
+  double sum = 0;
+  int n = 0;
+  for (size_t k = 0; k < rays.size(); ++k) {
+    Eigen::Vector2d q;
+    if (!estimate.project(R * rays[k], &q)) continue;
+    sum += (q - pixels[k]).norm();
+    ++n;
+  }
+  return n > 0 ? sum / n : nan;
 }
 
 }  // namespace posecal

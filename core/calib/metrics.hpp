@@ -31,4 +31,14 @@ double ground_truth_error(const CameraModel& truth, const CameraModel& estimate,
 double ground_truth_error_edges(const CameraModel& truth, const CameraModel& estimate, int cols = 40, int rows = 23,
                                 bool rms = false);
 
+// eps_gt with the camera frame's rotation taken out: the mean distance over the ground_truth_error
+// grid after the rotation R that minimises sum |pi_est(R ray) - pixel|^2 (Gauss-Newton from the
+// identity). A rotation of the camera frame is absorbed by the board poses, so the images do not
+// determine it; and a tilted sensor or a principal-point shift imitates one to first order
+// (docs/pose-selection.md, "Lens models beyond OpenCV's five coefficients"), which plain eps_gt
+// counts as error of f tau pixels. mrcal compares models the same way. *rotation_rad (optional)
+// gets the angle of R. NaN if no grid ray exists.
+double ground_truth_error_aligned(const CameraModel& truth, const CameraModel& estimate,
+                                  int cols = 40, int rows = 23, double* rotation_rad = nullptr);
+
 }  // namespace posecal

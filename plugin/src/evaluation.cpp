@@ -20,6 +20,9 @@ nlohmann::json evaluation_json(const CameraModel& estimate,
   j["test_frames_failed"] = te.frames_failed;
   j["test_points"] = te.points;
   j["eps_gt"] = truth ? number(ground_truth_error(*truth, estimate)) : nlohmann::json(nullptr);
+  // The same with the camera frame's rotation, which the images cannot determine, taken out.
+  j["eps_gt_aligned"] =
+      truth ? number(ground_truth_error_aligned(*truth, estimate)) : nlohmann::json(nullptr);
   return j;
 }
 

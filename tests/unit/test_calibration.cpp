@@ -329,6 +329,39 @@ TEST(Metrics, GroundTruthErrorAndTestError) {
   EXPECT_GT(test_error(wrong, test).rms_px, te.rms_px * 3);
 }
 
+// The aligned eps_gt takes out the rotation of the camera frame the images cannot determine: a
+// model of a tilted sensor and the same lens with the tilt replaced by a principal-point shift
+// (what a tilt is, up to second order, with a rotated frame) are pixels apart in plain eps_gt and
+// close once aligned; the rotation found is the tilt's.
+TEST(Metrics, AlignedGroundTruthErrorTakesOutTheCameraRotation) {
+  const CameraModel truth = c525_reference_model();
+  double angle = -1;
+  EXPECT_NEAR(ground_truth_error_aligned(truth, truth, 40, 23, &angle), 0.0, 1e-9);
+  EXPECT_NEAR(angle, 0.0, 1e-12);
+  std::vector<double> p = truth.params();
+  p.insert(p.end(), {0, 0, 0, 0, 0, 0, 0, 0.0087, -0.0052});
+  const CameraModel tilted(truth.width(), truth.height(), LensModel::kOpenCV14, p);
+  // To second order in the normalised coordinates, the tilt's projection is that of the untilted
+  // lens with the ray rotated by -tau (about x and y) and the principal point moved by
+  // (fx tau_y, -fy tau_x) (docs/pose-selection.md).
+  CameraModel imitation = truth;
+  imitation.params()[2] += truth.fx() * -0.0052;
+  imitation.params()[3] -= truth.fy() * 0.0087;
+  const double plain = ground_truth_error(tilted, imitation);
+  const double aligned = ground_truth_error_aligned(tilted, imitation, 40, 23, &angle);
+  std::printf(
+      "tilt 0.0087/-0.0052 rad imitated by a shifted principal point: eps_gt %.3f px, aligned %.3f "
+      "px "
+      "(rotation %.4f rad); the tilt alone moves pixels by %.3f px\n",
+      plain, aligned, angle, ground_truth_error(tilted, truth));
+  EXPECT_GT(plain, 5.0);
+  EXPECT_LT(aligned, 0.2 * plain);
+  EXPECT_NEAR(angle, std::hypot(0.0087, 0.0052), 0.005);
+  CameraModel shifted = truth;
+  shifted.params()[2] += 1.5;
+  EXPECT_LE(ground_truth_error_aligned(truth, shifted), ground_truth_error(truth, shifted) + 1e-9);
+}
+
 // trace(G Sigma) is the expected squared projection error over the image: checked exactly for the
 // principal point and the focal length of a pinhole model, and against sampling for a full
 // covariance with distortion.
