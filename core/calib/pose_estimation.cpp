@@ -9,11 +9,33 @@
 
 namespace posecal {
 
+PnPInput pnp_input(const CameraModel& model, const std::vector<cv::Point3d>& object,
+                   const std::vector<cv::Point2d>& image) {
+  PnPInput in;
+  if (opencv_coefficients(model.lens_model()) > 0) {
+    in.K = cv::Mat(model.camera_matrix());
+    in.dist = model.distortion_coefficients();
+    in.object = object;
+    in.image = image;
+    return in;
+  }
+  in.K = cv::Mat::eye(3, 3, CV_64F);
+  for (size_t i = 0; i < object.size() && i < image.size(); ++i) {
+    Eigen::Vector2d xn;
+    if (!model.unproject(Eigen::Vector2d(image[i].x, image[i].y), &xn)) continue;
+    in.object.push_back(object[i]);
+    in.image.emplace_back(xn.x(), xn.y());
+  }
+  return in;
+}
+
 bool estimate_pose(const CameraModel& model, const Observation& frame, Pose* T_cam_board,
                    double* rms_px) {
   if (frame.size() < 4 || frame.image_points.size() != frame.board_points.size()) return false;
-  const cv::Mat K(model.camera_matrix());
-  const std::vector<double> dist = model.distortion_coefficients();
+  const PnPInput in = pnp_input(model, frame.board_points, frame.image_points);
+  if (in.object.size() < 4) return false;
+  const cv::Mat& K = in.K;
+  const std::vector<double>& dist = in.dist;
   auto rms_of = [&](const Pose& p) {
     const auto proj = project_points(model, p, frame.board_points);
     double ss = 0;
@@ -35,7 +57,7 @@ bool estimate_pose(const CameraModel& model, const Observation& frame, Pose* T_c
   // refinement can diverge on a few corners at the border (seen: 18865 px with 7 corners). The
   // pose with the lower reprojection error wins.
   bool planar = true;
-  for (const auto& P : frame.board_points) planar = planar && P.z == 0.0;
+  for (const auto& P : in.object) planar = planar && P.z == 0.0;
   std::optional<Pose> best;
   double best_rms = std::numeric_limits<double>::infinity();
   auto consider = [&](const cv::Mat& rvec, const cv::Mat& tvec) {
@@ -49,16 +71,17 @@ bool estimate_pose(const CameraModel& model, const Observation& frame, Pose* T_c
   };
   try {
     cv::Mat rvec, tvec;
-    if (planar && cv::solvePnP(frame.board_points, frame.image_points, K, dist, rvec, tvec, false, cv::SOLVEPNP_IPPE)) {
+    if (planar &&
+        cv::solvePnP(in.object, in.image, K, dist, rvec, tvec, false, cv::SOLVEPNP_IPPE)) {
       consider(rvec, tvec);
-      cv::solvePnPRefineLM(frame.board_points, frame.image_points, K, dist, rvec, tvec);
+      cv::solvePnPRefineLM(in.object, in.image, K, dist, rvec, tvec);
       consider(rvec, tvec);
     }
   } catch (const cv::Exception&) {
   }
   try {
     cv::Mat rvec, tvec;
-    if (cv::solvePnP(frame.board_points, frame.image_points, K, dist, rvec, tvec, false, cv::SOLVEPNP_ITERATIVE)) {
+    if (cv::solvePnP(in.object, in.image, K, dist, rvec, tvec, false, cv::SOLVEPNP_ITERATIVE)) {
       consider(rvec, tvec);
     }
   } catch (const cv::Exception&) {

@@ -13,4 +13,17 @@ namespace posecal {
 bool estimate_pose(const CameraModel& model, const Observation& frame, Pose* T_cam_board,
                    double* rms_px = nullptr);
 
+// Correspondences as cv::solvePnP takes them for `model`: OpenCV's pinhole models pass K and
+// their distortion vector with the points as they are; a model OpenCV's pinhole functions do not
+// hold (the fisheye) passes the image points unprojected to the plane Z = 1 with K = I and no
+// distortion, dropping points 90 degrees or more from the axis.
+struct PnPInput {
+  cv::Mat K;
+  std::vector<double> dist;
+  std::vector<cv::Point3d> object;
+  std::vector<cv::Point2d> image;
+};
+PnPInput pnp_input(const CameraModel& model, const std::vector<cv::Point3d>& object,
+                   const std::vector<cv::Point2d>& image);
+
 }  // namespace posecal

@@ -223,7 +223,7 @@ std::map<std::string, std::pair<std::string, int>> parameters(const std::string&
 
 std::string compose_halcon(const std::string& path, const CameraModel& model) {
   const std::vector<double> d = model.distortion_coefficients();
-  if (d.size() != 5)
+  if (model.lens_model() != LensModel::kOpenCV5)
     cannot_hold(path, ModelFormat::kHalcon, model, "is not OpenCV's 5-coefficient model");
   HalconParams h;
   h.sx = kPixelSizeM;

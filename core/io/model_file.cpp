@@ -25,18 +25,35 @@ void cannot_hold(const std::string& path, ModelFormat format, const CameraModel&
                   lens_model_name(model.lens_model()) + " " + why + "; nothing written");
 }
 
-CameraModel model_from_opencv(const std::string& path, int width, int height,
-                              const std::vector<double>& K9, const std::vector<double>& dist,
-                              const std::string& what) {
+namespace {
+
+CameraModel checked_model(const std::string& path, int width, int height,
+                          const std::vector<double>& K9, const std::vector<double>& dist,
+                          const std::string& what, bool fisheye) {
   CameraModel model;
   try {
-    model = CameraModel::from_opencv(width, height, cv::Matx33d(K9.data()), dist);
+    model = fisheye ? CameraModel::from_opencv_fisheye(width, height, cv::Matx33d(K9.data()), dist)
+                    : CameraModel::from_opencv(width, height, cv::Matx33d(K9.data()), dist);
   } catch (const Error& e) {
     bad_file(path, what + ": " + e.what());
   }
   std::string why;
   if (!model.is_valid(&why)) bad_file(path, why);
   return model;
+}
+
+}  // namespace
+
+CameraModel model_from_opencv(const std::string& path, int width, int height,
+                              const std::vector<double>& K9, const std::vector<double>& dist,
+                              const std::string& what) {
+  return checked_model(path, width, height, K9, dist, what, false);
+}
+
+CameraModel model_from_opencv_fisheye(const std::string& path, int width, int height,
+                                      const std::vector<double>& K9,
+                                      const std::vector<double>& dist, const std::string& what) {
+  return checked_model(path, width, height, K9, dist, what, true);
 }
 
 }  // namespace model_io

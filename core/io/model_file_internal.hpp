@@ -99,5 +99,9 @@ std::string number_list(const std::vector<double>& v);
 CameraModel model_from_opencv(const std::string& path, int width, int height,
                               const std::vector<double>& K9, const std::vector<double>& dist,
                               const std::string& what);
+// The same for cv::fisheye's K and k1..k4: the fisheye model.
+CameraModel model_from_opencv_fisheye(const std::string& path, int width, int height,
+                                      const std::vector<double>& K9,
+                                      const std::vector<double>& dist, const std::string& what);
 
 }  // namespace posecal::model_io

@@ -17,7 +17,7 @@ bool mrcal_opencv_count(size_t n) { return n == 4 || n == 5 || n == 8 || n == 12
 
 std::string compose_mrcal(const std::string& path, const CameraModel& model) {
   const std::vector<double> d = model.distortion_coefficients();
-  if (!mrcal_opencv_count(d.size())) {
+  if (opencv_coefficients(model.lens_model()) == 0 || !mrcal_opencv_count(d.size())) {
     cannot_hold(path, ModelFormat::kMrcal, model, "has no LENSMODEL_OPENCV<N> equivalent");
   }
   std::vector<double> intrinsics{model.fx(), model.fy(), model.cx(), model.cy()};

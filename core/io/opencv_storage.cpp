@@ -523,17 +523,23 @@ ModelFile model_from(const std::string& path, const cv::FileNode& root) {
     bad_file(path, "'camera_matrix' must be [fx s cx; 0 fy cy; 0 0 1]");
   }
   if (dr != 1 && dc != 1) bad_file(path, "'distortion_coefficients' is not a vector");
-  // OpenCV's calibration sample marks its fisheye results; their 4 coefficients are not the
-  // pinhole model's.
-  if (const cv::FileNode f = root["fisheye_model"];
-      !f.empty() && f.isInt() && static_cast<int>(f) != 0) {
-    bad_file(path,
-             "is a fisheye calibration (fisheye_model: " + std::to_string(static_cast<int>(f)) +
-                 "); posecal reads OpenCV's pinhole models (4, 5, 8, 12 or 14 coefficients) only");
+  // A fisheye file says so by name (distortion_model or lens_model: fisheye) or, as OpenCV's
+  // calibration sample marks its cv::fisheye results, with fisheye_model: 1; its 4 coefficients
+  // are then cv::fisheye's k1..k4, not the pinhole model's k1 k2 p1 p2.
+  const char* fisheye_name = lens_model_name(LensModel::kFisheye);
+  bool fisheye = false;
+  for (const char* key : {"lens_model", "distortion_model"}) {
+    const cv::FileNode f = root[key];
+    fisheye = fisheye || (!f.empty() && f.isString() && f.string() == fisheye_name);
+  }
+  if (const cv::FileNode f = root["fisheye_model"]; !f.empty()) {
+    if (!f.isInt() && !f.isReal()) bad_file(path, "'fisheye_model' must be 0 or 1");
+    fisheye = fisheye || static_cast<double>(f) != 0;
   }
   ModelFile file;
   try {
-    file.model = CameraModel::from_opencv(w, h, cv::Matx33d(k.data()), d);
+    file.model = fisheye ? CameraModel::from_opencv_fisheye(w, h, cv::Matx33d(k.data()), d)
+                         : CameraModel::from_opencv(w, h, cv::Matx33d(k.data()), d);
   } catch (const Error& e) {
     throw Error(e.code(), "camera model file '" + path + "': " + e.what());
   }

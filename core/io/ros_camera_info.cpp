@@ -11,9 +11,12 @@ namespace posecal::model_io {
 namespace {
 
 // ROS' name of the distortion model of an OpenCV coefficient vector of this length.
-const char* ros_distortion_model(size_t coefficients) {
-  if (coefficients == 5) return "plumb_bob";
-  if (coefficients == 8) return "rational_polynomial";
+// ROS's distortion_model of a lens model, nullptr if it has none. ROS's equidistant is the
+// Kannala-Brandt model with cv::fisheye's k1..k4 (image_geometry).
+const char* ros_distortion_model(LensModel model) {
+  if (model == LensModel::kFisheye) return "equidistant";
+  if (opencv_coefficients(model) == 5) return "plumb_bob";
+  if (opencv_coefficients(model) == 8) return "rational_polynomial";
   return nullptr;
 }
 
@@ -58,7 +61,7 @@ std::vector<double> read_matrix(const Fields& f, const TextNode& root, const std
 std::string compose_ros(const std::string& path, const CameraModel& model,
                         const CalibrationFileExtras& extras) {
   const std::vector<double> d = model.distortion_coefficients();
-  const char* distortion = ros_distortion_model(d.size());
+  const char* distortion = ros_distortion_model(model.lens_model());
   if (distortion == nullptr) {
     cannot_hold(path, ModelFormat::kRos, model, "has no ROS distortion_model");
   }
@@ -95,13 +98,13 @@ ModelFile parse_ros(const std::string& path, std::string_view text) {
   const TextNode* model_node = f.find(root, "distortion_model");
   const std::string distortion =
       model_node ? f.string(*model_node, "'distortion_model'") : std::string("plumb_bob");
-  if (distortion != "plumb_bob" && distortion != "rational_polynomial") {
-    bad_file(
-        path,
-        "'distortion_model' '" + distortion +
-            "' is not read: posecal reads plumb_bob (opencv5) and rational_polynomial (opencv8)");
+  if (distortion != "plumb_bob" && distortion != "rational_polynomial" &&
+      distortion != "equidistant") {
+    bad_file(path, "'distortion_model' '" + distortion +
+                       "' is not read: posecal reads plumb_bob (opencv5), rational_polynomial "
+                       "(opencv8) and equidistant (fisheye)");
   }
-  const size_t expected = distortion == "plumb_bob" ? 5 : 8;
+  const size_t expected = distortion == "plumb_bob" ? 5 : distortion == "equidistant" ? 4 : 8;
   if (D.size() != expected) {
     bad_file(path, "'distortion_coefficients' has " + std::to_string(D.size()) + " values; " +
                        distortion + " has " + std::to_string(expected));
@@ -110,7 +113,9 @@ ModelFile parse_ros(const std::string& path, std::string_view text) {
   read_matrix(f, root, "projection_matrix", 3, 4);
   ModelFile file;
   file.format = ModelFormat::kRos;
-  file.model = model_from_opencv(path, w, h, K, D, "'distortion_coefficients'");
+  file.model = distortion == "equidistant"
+                   ? model_from_opencv_fisheye(path, w, h, K, D, "'distortion_coefficients'")
+                   : model_from_opencv(path, w, h, K, D, "'distortion_coefficients'");
   return file;
 }
 

@@ -59,6 +59,20 @@ CameraModel CameraModel::from_opencv(int width, int height, const cv::Matx33d& K
   return CameraModel(width, height, *model, std::move(params));
 }
 
+CameraModel CameraModel::from_opencv_fisheye(int width, int height, const cv::Matx33d& K,
+                                             const std::vector<double>& dist) {
+  if (dist.size() != 4) {
+    throw Error(ErrorCode::kInvalidArgument,
+                "a fisheye model has 4 distortion coefficients (k1..k4), got " +
+                    std::to_string(dist.size()));
+  }
+  if (K(0, 1) != 0.0) {
+    throw Error(ErrorCode::kUnsupported, "camera_matrix has skew; the model has no skew term");
+  }
+  return CameraModel(width, height, LensModel::kFisheye,
+                     {K(0, 0), K(1, 1), K(0, 2), K(1, 2), dist[0], dist[1], dist[2], dist[3]});
+}
+
 bool CameraModel::is_valid(std::string* why) const {
   auto fail = [&](const std::string& msg) {
     if (why) *why = msg;
@@ -86,8 +100,27 @@ Eigen::Vector2d CameraModel::distort(const Eigen::Vector2d& xn) const {
   return out;
 }
 
+namespace {
+
+// True if the model projects the direction p_cam (see CameraModel::project).
+bool in_field(const CameraModel& m, const Eigen::Vector3d& p_cam) {
+  if (!is_ray_model(m.lens_model())) return p_cam.z() > 0;
+  if (!p_cam.allFinite() || p_cam.isZero()) return false;
+  const double theta = std::atan2(p_cam.head<2>().norm(), p_cam.z());
+  return theta < M_PI &&
+         lens::Fisheye::max_theta(m.params().data() + kNumPinholeParams, theta) >= theta;
+}
+
+}  // namespace
+
+double CameraModel::max_ray_angle() const {
+  if (model_ == LensModel::kFisheye)
+    return lens::Fisheye::max_theta(params_.data() + kNumPinholeParams);
+  return 0.5 * M_PI * (1 - 1e-9);
+}
+
 bool CameraModel::project(const Eigen::Vector3d& p_cam, Eigen::Vector2d* uv) const {
-  if (!(p_cam.z() > 0)) return false;
+  if (!in_field(*this, p_cam)) return false;
   project_generic(model_, params_.data(), p_cam.data(), uv->data());
   return true;
 }
@@ -95,7 +128,7 @@ bool CameraModel::project(const Eigen::Vector3d& p_cam, Eigen::Vector2d* uv) con
 bool CameraModel::project(const Eigen::Vector3d& p_cam, Eigen::Vector2d* uv,
                           Eigen::Matrix<double, 2, 3>* J_p,
                           Eigen::Matrix<double, 2, Eigen::Dynamic>* J_params) const {
-  if (!(p_cam.z() > 0)) return false;
+  if (!in_field(*this, p_cam)) return false;
   // Automatic differentiation through the same templated projection used by the solver.
   constexpr int kN = 3 + kMaxIntrinsics;
   using Jet = ceres::Jet<double, kN>;

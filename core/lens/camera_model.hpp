@@ -52,6 +52,10 @@ class CameraModel {
   // it. Throws Error(kInvalidArgument) for another length, Error(kUnsupported) if K has skew.
   static CameraModel from_opencv(int width, int height, const cv::Matx33d& K,
                                  const std::vector<double>& dist);
+  // The same for cv::fisheye's K and 4 coefficients (k1..k4): the fisheye model. Throws
+  // Error(kInvalidArgument) for another count, Error(kUnsupported) if K has skew.
+  static CameraModel from_opencv_fisheye(int width, int height, const cv::Matx33d& K,
+                                         const std::vector<double>& dist);
 
   // The largest image a model may describe: kMaxImageSide pixels per side (below OpenCV's
   // cv::remap limit of 32767, SHRT_MAX) and kMaxImagePixels pixels (2^28, 268 MP; the largest
@@ -65,7 +69,9 @@ class CameraModel {
 
   // Lens distortion of a normalised point.
   Eigen::Vector2d distort(const Eigen::Vector2d& xn) const;
-  // Projects a camera-frame point; returns false if it is not in front of the camera (z <= 0).
+  // Projects a camera-frame point; returns false if it is outside the model's field: not in front
+  // of the camera (z <= 0), or for a ray model (the fisheye) beyond the angle from the axis where
+  // the model folds (at most 180 degrees).
   bool project(const Eigen::Vector3d& p_cam, Eigen::Vector2d* uv) const;
   // As project(), with the analytic Jacobians d(uv)/d(p_cam) (2x3) and d(uv)/d(params) (2xN).
   bool project(const Eigen::Vector3d& p_cam, Eigen::Vector2d* uv, Eigen::Matrix<double, 2, 3>* J_p,
@@ -77,6 +83,12 @@ class CameraModel {
   // The same, faster for many pixels: inside fold_free_r (from fold_free_radius() of this model)
   // the check that the distortion does not fold along the ray is skipped; the result is the same.
   bool unproject(const Eigen::Vector2d& uv, Eigen::Vector2d* xn, double fold_free_r) const;
+  // Pixel -> unit ray in the camera frame, for every model and the whole field of view (a ray
+  // model's rays may point 90 degrees or more from the axis, where unproject() fails).
+  bool unproject_ray(const Eigen::Vector2d& uv, Eigen::Vector3d* ray) const;
+  // The largest angle between a ray and the optical axis that the model projects: just below 90
+  // degrees for the models of the plane Z = 1, up to 180 degrees for the fisheye.
+  double max_ray_angle() const;
   // A radius in normalised coordinates inside which the distortion cannot fold (its Jacobian is
   // positive definite); 0 if none is known. A bound, not the exact fold radius.
   double fold_free_radius() const;

@@ -8,12 +8,15 @@ struct ModelInfo {
   LensModel model;
   const char* name;
   int opencv_coefficients;
+  bool ray_model;
+  int base_distortion;
   std::vector<std::string> names;  // all intrinsics, pinhole first
 };
 
 template <class M>
 ModelInfo info_of(LensModel model) {
-  ModelInfo info{model, M::kName, M::kOpenCVCoefficients, {kPinholeNames.begin(), kPinholeNames.end()}};
+  ModelInfo info{model,        M::kName,           M::kOpenCVCoefficients,
+                 M::kRayModel, M::kBaseDistortion, {kPinholeNames.begin(), kPinholeNames.end()}};
   for (const char* n : M::kDistortionNames) info.names.emplace_back(n);
   return info;
 }
@@ -58,17 +61,17 @@ const std::vector<std::string>& intrinsic_names(LensModel model) { return info(m
 
 const std::vector<std::string>& extension_parameters(LensModel model) {
   static const std::vector<std::vector<std::string>> all = [] {
-    const std::vector<std::string>& base = intrinsic_names(LensModel::kOpenCV5);
     std::vector<std::vector<std::string>> v;
-    for (const ModelInfo& i : table()) {
-      v.emplace_back();
-      for (const std::string& n : i.names)
-        if (std::find(base.begin(), base.end(), n) == base.end()) v.back().push_back(n);
-    }
+    for (const ModelInfo& i : table())
+      v.emplace_back(i.names.begin() + kNumPinholeParams + i.base_distortion, i.names.end());
     return v;
   }();
   return all.at(static_cast<size_t>(model));
 }
+
+bool is_ray_model(LensModel model) { return info(model).ray_model; }
+
+int opencv_coefficients(LensModel model) { return info(model).opencv_coefficients; }
 
 std::optional<LensModel> lens_model_of_opencv_count(int coefficients) {
   for (const ModelInfo& i : table())

@@ -9,6 +9,11 @@
 //   kDistortionNames      their names, in parameter order
 //   kOpenCVCoefficients   length of OpenCV's distortion vector that holds exactly this model
 //                         (0 if the model is not one of OpenCV's distortion vectors)
+//   kRayModel             true if the model projects 3-D directions (project_ray, unproject by
+//                         angle, valid beyond 90 degrees from the axis: the fisheye); false if
+//                         it distorts the plane Z = 1
+//   kBaseDistortion       the leading distortion coefficients always estimated; the rest are
+//                         held at 0 while the keyframes do not determine them
 //   distort<T>(dist, x, y, &xd, &yd)                   templated for Ceres' Jets
 //   distort_jacobian(dist, x, y, &xd, &yd, &J_xy)      with d(xd, yd)/d(x, y)
 //   project_jacobians(params, p_cam, &u, &v, &Jc, Ji)  with d(u, v)/d(p_cam) and d/d(params)
@@ -23,13 +28,14 @@
 #include <vector>
 
 #include "common/error.hpp"
+#include "lens/fisheye.hpp"
 #include "lens/opencv5.hpp"
 #include "lens/opencv_full.hpp"
 
 namespace posecal {
 
 // X(Model) for each model struct of namespace lens.
-#define POSECAL_LENS_MODELS(X) X(OpenCV5) X(OpenCV8) X(OpenCV12) X(OpenCV14)
+#define POSECAL_LENS_MODELS(X) X(OpenCV5) X(OpenCV8) X(OpenCV12) X(OpenCV14) X(Fisheye)
 
 enum class LensModel {
 #define POSECAL_LENS_ENUM(M) k##M,
@@ -80,19 +86,30 @@ int num_distortion_params(LensModel model);
 inline int num_intrinsics(LensModel model) { return kNumPinholeParams + num_distortion_params(model); }
 // Names of all intrinsics, pinhole first.
 const std::vector<std::string>& intrinsic_names(LensModel model);
-// The parameters a model adds to opencv5's (k4..k6, s1..s4, tau_x, tau_y), in its order; empty
-// for opencv5. Pose selection holds them at 0 while the keyframes do not determine them.
+// The parameters after a model's kBaseDistortion (k4..k6, s1..s4, tau_x, tau_y of OpenCV's full
+// model; k3 k4 of the fisheye), in its order; empty for opencv5. Pose selection holds them at 0
+// while the keyframes do not determine them.
 const std::vector<std::string>& extension_parameters(LensModel model);
+// Length of OpenCV's pinhole distortion vector that holds exactly the model; 0 for a model that
+// is not one (the fisheye: formats must not write its coefficients as such a vector).
+int opencv_coefficients(LensModel model);
+// True if the model projects 3-D directions and is valid beyond 90 degrees from the axis.
+bool is_ray_model(LensModel model);
 // The model holding an OpenCV distortion vector of `coefficients` entries exactly, if any.
 std::optional<LensModel> lens_model_of_opencv_count(int coefficients);
 
 // Projects a camera-frame point to pixels under model M: pi(P) = K * Delta(P / Z) (paper eq. 1).
+// Ray models project the direction itself (lens/fisheye.hpp).
 template <class M, typename T>
 inline void project_with(const T* params, const T* p_cam, T* uv) {
-  const T x = p_cam[0] / p_cam[2];
-  const T y = p_cam[1] / p_cam[2];
   T xd, yd;
-  M::distort(params + kNumPinholeParams, x, y, &xd, &yd);
+  if constexpr (M::kRayModel) {
+    M::project_ray(params + kNumPinholeParams, p_cam[0], p_cam[1], p_cam[2], &xd, &yd);
+  } else {
+    const T x = p_cam[0] / p_cam[2];
+    const T y = p_cam[1] / p_cam[2];
+    M::distort(params + kNumPinholeParams, x, y, &xd, &yd);
+  }
   uv[0] = params[0] * xd + params[2];
   uv[1] = params[1] * yd + params[3];
 }

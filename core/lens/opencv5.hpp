@@ -16,6 +16,10 @@ struct OpenCV5 {
   static constexpr std::array<const char*, kNumDistortion> kDistortionNames{"k1", "k2", "p1", "p2", "k3"};
   // Length of OpenCV's distortion vector that holds exactly this model (0: not an OpenCV vector).
   static constexpr int kOpenCVCoefficients = 5;
+  // Projects points of the plane Z = 1 (distort); not 3-D directions (see fisheye.hpp).
+  static constexpr bool kRayModel = false;
+  // k1 k2 p1 p2 k3 are always estimated; the coefficients after them are held while undetermined.
+  static constexpr int kBaseDistortion = 5;
 
   // Distortion of a normalised point (x, y) = (X/Z, Y/Z). Templated for Ceres' Jets.
   template <typename T>

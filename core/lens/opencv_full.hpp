@@ -30,6 +30,10 @@ struct OpenCVFull {
     return names;
   }();
   static constexpr int kOpenCVCoefficients = N;
+  // Projects points of the plane Z = 1 (distort); not 3-D directions (see fisheye.hpp).
+  static constexpr bool kRayModel = false;
+  // k1 k2 p1 p2 k3 are always estimated; the coefficients after them are held while undetermined.
+  static constexpr int kBaseDistortion = 5;
   static constexpr bool kThinPrism = N >= 12;
   static constexpr bool kTilted = N >= 14;
 

@@ -1,6 +1,7 @@
 // Unprojection (pixel -> ray) by Newton iteration on the distortion, and the per-pixel maps built
 // on it (rays for the renderer, distortion magnitude for the C_Delta pose rule). docs/math.md.
 #include <Eigen/Dense>
+#include <cmath>
 #include <limits>
 
 #include "common/error.hpp"
@@ -10,11 +11,39 @@ namespace posecal {
 
 namespace {
 
+// The unit ray of a ray model whose distorted normalised point is (tx, ty).
+// max_th: M::max_theta(dist), or 0 to compute it here.
+template <class M>
+bool invert_ray(const double* dist, double tx, double ty, Eigen::Vector3d* ray, double max_th = 0) {
+  const double td = std::hypot(tx, ty);
+  double theta;
+  if (!M::undistort_angle(dist, td, max_th > 0 ? max_th : M::max_theta(dist), &theta)) return false;
+  if (td == 0) {
+    *ray = Eigen::Vector3d::UnitZ();
+  } else {
+    const double s = std::sin(theta) / td;
+    *ray << s * tx, s * ty, std::cos(theta);
+  }
+  return true;
+}
+
 // Solves M::distort(x) = target by damped Newton from `x`. Rejects solutions where the
 // distortion folds over (det J <= 0): there the model has no physical preimage. Inside
 // `fold_free_r` (M::fold_free_radius()) the check along the ray is known to pass and is skipped.
+// A ray model (the fisheye) inverts its angle instead: the solution is the ray at angle theta
+// from the axis towards (tx, ty), in normalised coordinates if theta < 90 degrees.
 template <class M>
 bool invert_distortion(const double* dist, double tx, double ty, double* x, double* y, double fold_free_r = 0.0) {
+  if constexpr (M::kRayModel) {
+    // fold_free_r (M::fold_free_radius) is tan of the model's largest angle below 90 degrees.
+    Eigen::Vector3d ray;
+    if (!invert_ray<M>(dist, tx, ty, &ray, fold_free_r > 0 ? std::atan(fold_free_r) : 0.0) ||
+        !(ray.z() > 1e-9))
+      return false;
+    *x = ray.x() / ray.z();
+    *y = ray.y() / ray.z();
+    return true;
+  }
   double cx = *x, cy = *y;
   Eigen::Matrix2d J;
   double xd, yd;
@@ -83,6 +112,23 @@ bool CameraModel::unproject(const Eigen::Vector2d& uv, Eigen::Vector2d* xn, doub
   if (!ok) return false;
   *xn << x, y;
   return true;
+}
+
+bool CameraModel::unproject_ray(const Eigen::Vector2d& uv, Eigen::Vector3d* ray) const {
+  const double tx = (uv.x() - cx()) / fx();
+  const double ty = (uv.y() - cy()) / fy();
+  const double* dist = params_.data() + kNumPinholeParams;
+  return with_lens_model(model_, [&](auto m) {
+    using M = decltype(m);
+    if constexpr (M::kRayModel) {
+      return invert_ray<M>(dist, tx, ty, ray);
+    } else {
+      double x = tx, y = ty;
+      if (!invert_distortion<M>(dist, tx, ty, &x, &y)) return false;
+      *ray = Eigen::Vector3d(x, y, 1).normalized();
+      return true;
+    }
+  });
 }
 
 cv::Mat CameraModel::ray_map(int supersample) const {

@@ -3,6 +3,7 @@
 #include <cmath>
 #include <opencv2/calib3d.hpp>
 
+#include "calib/pose_estimation.hpp"
 #include "common/error.hpp"
 #include "lens/geometry.hpp"
 
@@ -160,11 +161,12 @@ Pose SimulatedOperator::attempt_goal(const GuidanceInfo& g) {
       img.push_back(overlay[i]);
     }
   }
-  if (obj.size() >= 6) {
+  const PnPInput in = pnp_input(truth_, obj, img);
+  if (in.object.size() >= 6) {
     cv::Mat rvec = (cv::Mat_<double>(3, 1) << aligned.r.x(), aligned.r.y(), aligned.r.z());
     cv::Mat tvec = (cv::Mat_<double>(3, 1) << aligned.t.x(), aligned.t.y(), aligned.t.z());
     try {
-      if (cv::solvePnP(obj, img, cv::Mat(truth_.camera_matrix()), truth_.distortion_coefficients(), rvec, tvec, true)) {
+      if (cv::solvePnP(in.object, in.image, in.K, in.dist, rvec, tvec, true)) {
         Pose p;
         p.r << rvec.at<double>(0), rvec.at<double>(1), rvec.at<double>(2);
         p.t << tvec.at<double>(0), tvec.at<double>(1), tvec.at<double>(2);

@@ -35,7 +35,41 @@ std::vector<CameraModel> sample_models() {
   return {
       CameraModel::opencv5(1280, 720, 1000, 1010, 650, 350, {-0.25, 0.12, 0.001, -0.002, -0.02}),
       model(LensModel::kOpenCV8, {rational}), model(LensModel::kOpenCV12, {rational, prism}),
-      model(LensModel::kOpenCV14, {rational, prism, tilt})};
+      model(LensModel::kOpenCV14, {rational, prism, tilt}),
+      // A fisheye whose image corners see 103 degrees from the axis.
+      CameraModel(1280, 720, LensModel::kFisheye,
+                  {405, 400, 642, 358, 0.02, -0.006, 0.001, -0.0002})};
+}
+
+bool is_fisheye(const CameraModel& m) { return m.lens_model() == LensModel::kFisheye; }
+
+// OpenCV's own projection of the model: cv::fisheye's for the fisheye, else cv::projectPoints.
+std::vector<cv::Point2d> opencv_project(const CameraModel& m, const std::vector<cv::Point3d>& pts) {
+  std::vector<cv::Point2d> out;
+  const cv::Vec3d zero(0, 0, 0);
+  if (is_fisheye(m)) {
+    cv::fisheye::projectPoints(pts, out, zero, zero, cv::Mat(m.camera_matrix()),
+                               m.distortion_coefficients());
+  } else {
+    cv::projectPoints(pts, zero, zero, cv::Mat(m.camera_matrix()), m.distortion_coefficients(),
+                      out);
+  }
+  return out;
+}
+
+// OpenCV's own unprojection to the plane Z = 1, iterated to convergence.
+std::vector<cv::Point2d> opencv_undistort(const CameraModel& m,
+                                          const std::vector<cv::Point2d>& px) {
+  std::vector<cv::Point2d> out;
+  const cv::TermCriteria done(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 200, 1e-14);
+  if (is_fisheye(m)) {
+    cv::fisheye::undistortPoints(px, out, cv::Mat(m.camera_matrix()), m.distortion_coefficients(),
+                                 cv::noArray(), cv::noArray(), done);
+  } else {
+    cv::undistortPoints(px, out, cv::Mat(m.camera_matrix()), m.distortion_coefficients(),
+                        cv::noArray(), cv::noArray(), done);
+  }
+  return out;
 }
 
 CameraModel strong_model() { return sample_models().front(); }
@@ -60,9 +94,7 @@ TEST(CameraModel, ProjectionMatchesOpenCV) {
     std::uniform_real_distribution<double> U(-0.5, 0.5);
     std::vector<cv::Point3d> pts;
     for (int i = 0; i < 200; ++i) pts.emplace_back(U(rng), U(rng) * 0.6, 1.0 + U(rng));
-    std::vector<cv::Point2d> ref;
-    cv::projectPoints(pts, cv::Vec3d(0, 0, 0), cv::Vec3d(0, 0, 0), cv::Mat(m.camera_matrix()),
-                      m.distortion_coefficients(), ref);
+    const std::vector<cv::Point2d> ref = opencv_project(m, pts);
     for (size_t i = 0; i < pts.size(); ++i) {
       Eigen::Vector2d uv;
       ASSERT_TRUE(m.project(Eigen::Vector3d(pts[i].x, pts[i].y, pts[i].z), &uv));
@@ -122,9 +154,16 @@ TEST(CameraModel, ModelDerivativesMatchFiniteDifferences) {
   for (const CameraModel& m : sample_models()) {
     SCOPED_TRACE(lens_model_name(m.lens_model()));
     const int n = m.num_params();
-    for (const Eigen::Vector3d& p :
-         {Eigen::Vector3d(0.21, -0.13, 0.9), Eigen::Vector3d(-0.55, 0.3, 1.0),
-          Eigen::Vector3d(0.6, 0.33, 0.95), Eigen::Vector3d(0.0, 0.0, 2.0)}) {
+    std::vector<Eigen::Vector3d> points{
+        Eigen::Vector3d(0.21, -0.13, 0.9), Eigen::Vector3d(-0.55, 0.3, 1.0),
+        Eigen::Vector3d(0.6, 0.33, 0.95), Eigen::Vector3d(0.0, 0.0, 2.0)};
+    if (is_fisheye(m)) {
+      // Beyond 90 degrees from the axis, at 90, and within the series near the axis.
+      points.emplace_back(0.9, 0.2, -0.15);
+      points.emplace_back(-0.3, 0.7, 0.0);
+      points.emplace_back(1e-10, -2e-10, 1.5);
+    }
+    for (const Eigen::Vector3d& p : points) {
       double u, v;
       Eigen::Matrix<double, 2, 3> Jc;
       Eigen::Matrix<double, 2, Eigen::Dynamic> Ji(2, n);
@@ -164,21 +203,75 @@ TEST(CameraModel, UnprojectInvertsProjectAndAgreesWithOpenCV) {
     std::vector<cv::Point2d> px;
     for (int v = 0; v < m.height(); v += 37)
       for (int u = 0; u < m.width(); u += 41) px.emplace_back(u, v);
-    std::vector<cv::Point2d> cvn;
-    cv::undistortPoints(
-        px, cvn, cv::Mat(m.camera_matrix()), m.distortion_coefficients(), cv::noArray(),
-        cv::noArray(),
-        cv::TermCriteria(cv::TermCriteria::COUNT | cv::TermCriteria::EPS, 200, 1e-14));
+    px.emplace_back(0, 0), px.emplace_back(m.width() - 1, m.height() - 1);
+    const std::vector<cv::Point2d> cvn = opencv_undistort(m, px);
+    int beyond_90 = 0;
     for (size_t i = 0; i < px.size(); ++i) {
+      // The unit ray, over the whole image (a fisheye's corners look more than 90 degrees aside).
+      Eigen::Vector3d ray;
       Eigen::Vector2d xn, back;
+      ASSERT_TRUE(m.unproject_ray(Eigen::Vector2d(px[i].x, px[i].y), &ray)) << px[i];
+      EXPECT_NEAR(ray.norm(), 1.0, 1e-12);
+      ASSERT_TRUE(m.project(ray, &back)) << px[i];
+      EXPECT_NEAR(back.x(), px[i].x, 1e-7);
+      EXPECT_NEAR(back.y(), px[i].y, 1e-7);
+      if (ray.z() <= 1e-6) {
+        ++beyond_90;
+        EXPECT_FALSE(m.unproject(Eigen::Vector2d(px[i].x, px[i].y), &xn)) << px[i];
+        continue;
+      }
       ASSERT_TRUE(m.unproject(Eigen::Vector2d(px[i].x, px[i].y), &xn)) << px[i];
+      EXPECT_NEAR(xn.x(), ray.x() / ray.z(), 1e-9 * (1 + xn.norm()));
       ASSERT_TRUE(m.project(Eigen::Vector3d(xn.x(), xn.y(), 1), &back));
       EXPECT_NEAR(back.x(), px[i].x, 1e-7);
       EXPECT_NEAR(back.y(), px[i].y, 1e-7);
+      // OpenCV's projection takes the ray back to the pixel.
+      const cv::Point2d cv_back = opencv_project(m, {cv::Point3d(xn.x(), xn.y(), 1)})[0];
+      EXPECT_NEAR(cv_back.x, px[i].x, 1e-7);
+      EXPECT_NEAR(cv_back.y, px[i].y, 1e-7);
+      // cv::fisheye::undistortPoints stops short of the ray as it nears 90 degrees (1.8 degrees
+      // off at 89.7): compared below 75 degrees only.
+      if (is_fisheye(m) && xn.norm() > std::tan(75 * M_PI / 180)) continue;
       EXPECT_NEAR(xn.x(), cvn[i].x, 1e-6);
       EXPECT_NEAR(xn.y(), cvn[i].y, 1e-6);
     }
+    if (is_fisheye(m)) {
+      EXPECT_GT(beyond_90, 10);
+    }
   }
+}
+
+// The fisheye beyond 90 degrees: a 185-degree lens on 1280x1024 sees points behind the camera
+// plane; where its polynomial folds (theta_d stops increasing) it projects and unprojects
+// nothing.
+TEST(CameraModel, FisheyeSeesBeyondNinetyDegreesAndNothingBeyondItsFold) {
+  const double f = 512 / (92.5 * M_PI / 180);  // 92.5 degrees at the short side's edge
+  const CameraModel wide(1280, 1024, LensModel::kFisheye, {f, f, 639.5, 511.5, 0, 0, 0, 0});
+  EXPECT_NEAR(wide.max_ray_angle(), M_PI, 1e-12);
+  const double th = 92 * M_PI / 180;
+  Eigen::Vector2d uv;
+  ASSERT_TRUE(wide.project(Eigen::Vector3d(std::sin(th), 0, std::cos(th)), &uv));
+  EXPECT_NEAR(uv.x(), 639.5 + f * th, 1e-9);
+  EXPECT_NEAR(uv.y(), 511.5, 1e-9);
+  Eigen::Vector3d ray;
+  ASSERT_TRUE(wide.unproject_ray(Eigen::Vector2d(639.5, 511.5 - f * th), &ray));
+  EXPECT_NEAR(ray.y(), -std::sin(th), 1e-12);
+  EXPECT_NEAR(ray.z(), std::cos(th), 1e-12);
+  Eigen::Vector2d xn;
+  EXPECT_FALSE(wide.unproject(Eigen::Vector2d(639.5, 511.5 - f * th), &xn));
+  EXPECT_FALSE(wide.project(Eigen::Vector3d(0, 0, -1), &uv));  // straight behind
+  EXPECT_FALSE(wide.project(Eigen::Vector3d(0, 0, 0), &uv));
+  // k1 = -0.3: theta_d' = 1 - 0.9 theta^2 vanishes at 1.054 rad.
+  const CameraModel folds(1280, 1024, LensModel::kFisheye, {f, f, 639.5, 511.5, -0.3, 0, 0, 0});
+  const double fold = 1 / std::sqrt(0.9);
+  EXPECT_LE(folds.max_ray_angle(), fold);
+  EXPECT_GT(folds.max_ray_angle(), fold - 0.01);
+  EXPECT_TRUE(folds.project(Eigen::Vector3d(std::tan(fold - 0.02), 0, 1), &uv));
+  EXPECT_FALSE(folds.project(Eigen::Vector3d(std::tan(fold + 0.02), 0, 1), &uv));
+  const double rim = fold * (1 - 0.3 * fold * fold);  // the largest theta_d
+  EXPECT_TRUE(folds.unproject_ray(Eigen::Vector2d(639.5 + f * rim * 0.99, 511.5), &ray));
+  EXPECT_FALSE(folds.unproject_ray(Eigen::Vector2d(639.5 + f * rim * 1.01, 511.5), &ray));
+  EXPECT_FALSE(folds.unproject(Eigen::Vector2d(639.5 + f * rim * 1.01, 511.5), &xn));
 }
 
 TEST(CameraModel, UnprojectRejectsPixelsWithoutPreimage) {
@@ -366,8 +459,19 @@ TEST(CameraModel, BadFilesGiveClearErrors) {
   std::ofstream(dir + "/unknown.yml") << head << "distortion_model: fisheye9\n" << dist(5);
   expect_error(dir + "/unknown.yml", ErrorCode::kInvalidArgument,
                "'fisheye9' is not one of: opencv5, opencv8");
+  // A fisheye file: by name or by OpenCV's sample's fisheye_model: 1, with cv::fisheye's 4
+  // coefficients; with another count, or named a pinhole model as well, it is refused.
   std::ofstream(dir + "/fisheye.yml") << head << "fisheye_model: 1\n" << dist(4);
-  expect_error(dir + "/fisheye.yml", ErrorCode::kInvalidArgument, "fisheye_model: 1");
+  EXPECT_EQ(read_camera_model(dir + "/fisheye.yml").lens_model(), LensModel::kFisheye);
+  std::ofstream(dir + "/fisheye5.yml") << head << "distortion_model: fisheye\n" << dist(5);
+  expect_error(dir + "/fisheye5.yml", ErrorCode::kInvalidArgument,
+               "a fisheye model has 4 distortion coefficients (k1..k4), got 5");
+  std::ofstream(dir + "/fisheye_pinhole.yml")
+      << head << "distortion_model: fisheye\nlens_model: opencv5\n"
+      << dist(4) << "posecal_file_end: 1\n";
+  expect_error(dir + "/fisheye_pinhole.yml", ErrorCode::kInvalidArgument,
+               "'lens_model' opencv5 does not match the distortion_coefficients (4 coefficients: "
+               "fisheye)");
   std::ofstream(dir + "/fourteen.yml") << head << dist(14);
   EXPECT_EQ(read_camera_model(dir + "/fourteen.yml").lens_model(), LensModel::kOpenCV14);
   EXPECT_THROW(CameraModel(640, 480, LensModel::kOpenCV5, {1, 2, 3}), Error);

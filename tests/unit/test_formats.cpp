@@ -57,23 +57,28 @@ CameraModel model_of(LensModel lens) {
   p.insert(p.end(), all.begin(), all.begin() + num_distortion_params(lens));
   return CameraModel(1280, 720, lens, p);
 }
+// A 185-degree fisheye on a 1280x1024 sensor (cv::fisheye's k1..k4).
+CameraModel fisheye_model() {
+  return CameraModel(1280, 1024, LensModel::kFisheye,
+                     {317.25, 318.5, 640.25, 511.75, 0.012, -0.0021, 0.00031, -0.00002});
+}
 CameraModel model_without_k3() {
   return CameraModel::opencv5(752, 480, 458.123, 457.456, 367.891, 248.345,
                               {-0.2841, 0.0822, 0.00031, -0.00012, 0});
 }
 
 // The largest projection difference of the two models over rays through a 33 x 25 pixel grid
-// that covers the whole image of `a`, edge to edge.
+// that covers the whole image of `a`, edge to edge (beyond 90 degrees for a fisheye).
 double max_projection_difference(const CameraModel& a, const CameraModel& b) {
   double worst = 0;
   for (int j = 0; j <= 24; ++j) {
     for (int i = 0; i <= 32; ++i) {
       const Eigen::Vector2d px((a.width() - 1) * i / 32.0, (a.height() - 1) * j / 24.0);
-      Eigen::Vector2d xn;
-      EXPECT_TRUE(a.unproject(px, &xn)) << px.transpose();
+      Eigen::Vector3d ray;
+      EXPECT_TRUE(a.unproject_ray(px, &ray)) << px.transpose();
       Eigen::Vector2d ua, ub;
-      EXPECT_TRUE(a.project(Eigen::Vector3d(xn.x(), xn.y(), 1), &ua));
-      EXPECT_TRUE(b.project(Eigen::Vector3d(xn.x(), xn.y(), 1), &ub));
+      EXPECT_TRUE(a.project(ray, &ua));
+      EXPECT_TRUE(b.project(ray, &ub));
       worst = std::max(worst, (ua - ub).norm());
     }
   }
@@ -153,6 +158,11 @@ TEST(Formats, EveryFormatRoundTrips) {
       {ModelFormat::kRos, "rt8_ros.yaml", model_of(LensModel::kOpenCV8)},
       {ModelFormat::kMrcal, "rt8.cameramodel", model_of(LensModel::kOpenCV8)},
       {ModelFormat::kMrcal, "rt12.cameramodel", model_of(LensModel::kOpenCV12)},
+      {ModelFormat::kOpenCV, "rt_fisheye.yml", fisheye_model()},
+      {ModelFormat::kOpenCV, "rt_fisheye.json", fisheye_model()},
+      {ModelFormat::kOpenCV, "rt_fisheye.xml", fisheye_model()},
+      {ModelFormat::kRos, "rt_fisheye_ros.yaml", fisheye_model()},
+      {ModelFormat::kKalibr, "rt_fisheye_kalibr.yaml", fisheye_model()},
   };
   for (const Case& c : cases) {
     SCOPED_TRACE(c.file);
@@ -173,10 +183,13 @@ TEST(Formats, EveryFormatRoundTrips) {
            {ModelFormat::kRos, LensModel::kOpenCV14},
            {ModelFormat::kMrcal, LensModel::kOpenCV14},
            {ModelFormat::kKalibr, LensModel::kOpenCV8},
-           {ModelFormat::kHalcon, LensModel::kOpenCV8}}) {
+           {ModelFormat::kHalcon, LensModel::kOpenCV8},
+           {ModelFormat::kMrcal, LensModel::kFisheye},
+           {ModelFormat::kHalcon, LensModel::kFisheye}}) {
     const std::string path = temp_path("refused.txt");
     std::filesystem::remove(path);
-    expect_invalid([&] { write_camera_model(path, model_of(lens), {}, format); },
+    const CameraModel model = lens == LensModel::kFisheye ? fisheye_model() : model_of(lens);
+    expect_invalid([&] { write_camera_model(path, model, {}, format); },
                    {model_format_name(format), lens_model_name(lens), "nothing written"},
                    lens_model_name(lens));
     EXPECT_FALSE(std::filesystem::exists(path));
@@ -337,8 +350,11 @@ TEST(Formats, RosBadInput) {
   no_k.erase(no_k.find("camera_matrix:"),
              no_k.find("distortion_model:") - no_k.find("camera_matrix:"));
   expect_refused(write_text("nok_ros.yaml", no_k), {"no field 'camera_matrix'"});
+  // equidistant is the fisheye, with 4 coefficients.
   expect_refused(write_text("equi_ros.yaml", replaced(good, "plumb_bob", "equidistant")),
-                 {"'distortion_model' 'equidistant'"});
+                 {"'distortion_coefficients' has 5 values; equidistant has 4"});
+  expect_refused(write_text("fov_ros.yaml", replaced(good, "plumb_bob", "fov")),
+                 {"'distortion_model' 'fov'"});
   expect_refused(write_text("count_ros.yaml", replaced(good, "-0.031900]", "-0.031900, 0.1]")),
                  {"'distortion_coefficients.data'", "6 values"});
   expect_refused(
@@ -470,8 +486,8 @@ TEST(Formats, KalibrBadInput) {
   const std::string cam0 = good.substr(0, good.find("cam1:"));
   expect_truncations_refused("cut_kalibr.yaml",
                              replaced(cam0, "  rostopic: /cam0/image_raw\n", ""));
-  expect_refused(write_text("equi_kalibr.yaml", replaced(good, "radtan", "equidistant")),
-                 {"'cam0.distortion_model' 'equidistant'"});
+  expect_refused(write_text("fov_kalibr.yaml", replaced(good, "radtan", "fov")),
+                 {"'cam0.distortion_model' 'fov'"});
   expect_refused(
       write_text("omni_kalibr.yaml", replaced(good, "camera_model: pinhole", "camera_model: omni")),
       {"'cam0.camera_model' 'omni'"});
