@@ -32,7 +32,9 @@ TestError test_error(const CameraModel& estimate, const std::vector<Observation>
 namespace {
 
 // Mean (or RMS) over a cols x rows grid, placed by pixel(i, j), of the distance between a pixel
-// and the estimated projection of its true ray; NaN if no grid ray exists.
+// and the estimated projection of its true ray (the unit ray: a fisheye's reach beyond 90 degrees
+// counts; pixels without a true ray, outside a fisheye's image circle, do not); NaN if no grid
+// ray exists.
 template <class Pixel>
 double grid_error(const CameraModel& truth, const CameraModel& estimate, int cols, int rows, bool rms, Pixel pixel) {
   if (truth.size() != estimate.size()) {
@@ -43,9 +45,10 @@ double grid_error(const CameraModel& truth, const CameraModel& estimate, int col
   for (int j = 0; j < rows; ++j) {
     for (int i = 0; i < cols; ++i) {
       const Eigen::Vector2d p = pixel(i, j);
-      Eigen::Vector2d xn, q;
-      if (!truth.unproject(p, &xn)) continue;
-      if (!estimate.project(Eigen::Vector3d(xn.x(), xn.y(), 1.0), &q)) continue;
+      Eigen::Vector3d ray;
+      Eigen::Vector2d q;
+      if (!truth.unproject_ray(p, &ray)) continue;
+      if (!estimate.project(ray, &q)) continue;
       sum += rms ? (q - p).squaredNorm() : (q - p).norm();
       ++n;
     }
@@ -83,9 +86,9 @@ double ground_truth_error_aligned(const CameraModel& truth, const CameraModel& e
     for (int i = 0; i < cols; ++i) {
       const Eigen::Vector2d p((i + 0.5) * truth.width() / cols - 0.5,
                               (j + 0.5) * truth.height() / rows - 0.5);
-      Eigen::Vector2d xn;
-      if (!truth.unproject(p, &xn)) continue;
-      rays.push_back(Eigen::Vector3d(xn.x(), xn.y(), 1.0).normalized());
+      Eigen::Vector3d ray;
+      if (!truth.unproject_ray(p, &ray)) continue;
+      rays.push_back(ray);
       pixels.push_back(p);
     }
   }

@@ -98,6 +98,9 @@ class CameraModel {
   // Map of normalised rays for every pixel (CV_32FC2, NaN where unproject fails), optionally
   // supersampled: sample (i, j) of an n-times map is pixel ((j + 0.5) / n - 0.5, ...).
   cv::Mat ray_map(int supersample = 1) const;
+  // The same as unit rays (CV_32FC3, NaN where unproject_ray fails): the whole field of view,
+  // beyond 90 degrees from the axis for a ray model (the fisheye).
+  cv::Mat direction_map(int supersample = 1) const;
 
  private:
   int width_ = 0;

@@ -172,6 +172,45 @@ cv::Mat CameraModel::ray_map(int supersample) const {
   return map;
 }
 
+cv::Mat CameraModel::direction_map(int supersample) const {
+  if (supersample < 1) throw Error(ErrorCode::kInvalidArgument, "supersample must be >= 1");
+  if (!is_ray_model(model_)) {
+    // The plane's rays, normalised.
+    const cv::Mat plane = ray_map(supersample);
+    cv::Mat map(plane.size(), CV_32FC3);
+    for (int i = 0; i < plane.rows; ++i) {
+      const auto* in = plane.ptr<cv::Vec2f>(i);
+      auto* out = map.ptr<cv::Vec3f>(i);
+      for (int j = 0; j < plane.cols; ++j) {
+        const float n = std::sqrt(in[j][0] * in[j][0] + in[j][1] * in[j][1] + 1.0f);
+        out[j] = cv::Vec3f(in[j][0] / n, in[j][1] / n, 1.0f / n);  // NaN stays NaN
+      }
+    }
+    return map;
+  }
+  const int W = width_ * supersample, H = height_ * supersample;
+  cv::Mat map(H, W, CV_32FC3);
+  const double* dist = params_.data() + kNumPinholeParams;
+  const float nan = std::numeric_limits<float>::quiet_NaN();
+  with_lens_model(model_, [&](auto m) {
+    using M = decltype(m);
+    if constexpr (M::kRayModel) {
+      const double max_th = M::max_theta(dist);
+      for (int i = 0; i < H; ++i) {
+        auto* row = map.ptr<cv::Vec3f>(i);
+        const double ty = ((i + 0.5) / supersample - 0.5 - cy()) / fy();
+        for (int j = 0; j < W; ++j) {
+          const double tx = ((j + 0.5) / supersample - 0.5 - cx()) / fx();
+          Eigen::Vector3d ray;
+          row[j] = invert_ray<M>(dist, tx, ty, &ray, max_th) ? cv::Vec3f(ray.x(), ray.y(), ray.z())
+                                                             : cv::Vec3f(nan, nan, nan);
+        }
+      }
+    }
+  });
+  return map;
+}
+
 cv::Mat CameraModel::distortion_map(int step) const {
   if (step < 1) throw Error(ErrorCode::kInvalidArgument, "distortion map step must be >= 1");
   const int rows = (height_ + step - 1) / step, cols = (width_ + step - 1) / step;

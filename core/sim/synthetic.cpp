@@ -64,7 +64,11 @@ struct SyntheticCamera::Impl {
   // Scratch buffers reused between frames.
   cv::Mat map, sampled, pixels, ideal;
 
-  int samples_per_pixel() const { return options.renderer == Renderer::kWarp ? 1 : options.supersample; }
+  // kWarp samples pixel centres, except for a ray model, which it ray-casts (set_rays).
+  bool warps() const {
+    return options.renderer == Renderer::kWarp && !is_ray_model(model.lens_model());
+  }
+  int samples_per_pixel() const { return warps() ? 1 : options.supersample; }
   void set_rays();
   int mip_level(const Eigen::Matrix3d& H, double sample_step) const;
   cv::Rect sheet_roi(const Pose& T_cam_board) const;
@@ -100,7 +104,9 @@ namespace {
 // The renderer's memory grows with the pixels and the ray samples: both are bounded.
 void check_render_size(const CameraModel& truth, const RenderOptions& options) {
   const long long pixels = static_cast<long long>(truth.width()) * truth.height();
-  const long long ss = options.renderer == Renderer::kWarp ? 1 : options.supersample;
+  const long long ss = options.renderer == Renderer::kWarp && !is_ray_model(truth.lens_model())
+                           ? 1
+                           : options.supersample;
   if (pixels > SyntheticCamera::kMaxPixels || pixels * ss * ss > SyntheticCamera::kMaxSamples) {
     throw Error(ErrorCode::kInvalidArgument,
                 "synthetic camera: " + std::to_string(truth.width()) + "x" +
@@ -171,6 +177,12 @@ std::vector<cv::Point2d> SyntheticCamera::true_corners(const Pose& T_cam_board) 
 // The rays of every sample; for kWarp (pixel centres) also their extent, which the ideal pinhole
 // image must cover, and its scale: twice the focal length, at most 8192 samples a side.
 void SyntheticCamera::Impl::set_rays() {
+  // A ray model (the fisheye) sees beyond 90 degrees: unit rays, always ray-cast (the ideal
+  // pinhole image of kWarp cannot hold such a view). Otherwise the rays of the plane Z = 1.
+  if (is_ray_model(model.lens_model())) {
+    rays = model.direction_map(samples_per_pixel());
+    return;
+  }
   rays = model.ray_map(samples_per_pixel());
   if (options.renderer != Renderer::kWarp) return;
   ray_x0 = ray_y0 = std::numeric_limits<double>::infinity();
@@ -278,17 +290,21 @@ void SyntheticCamera::Impl::sample_board(const cv::Rect& roi, const Eigen::Matri
     const cv::Rect sroi(roi.x * n, roi.y * n, roi.width * n, roi.height * n);
     const int W = sroi.width, Hh = sroi.height;
     map.create(Hh, W, CV_32FC2);
+    // Rays (x, y, 1) of the plane, or unit rays (x, y, z) of a ray model: M maps either
+    // homogeneously, and w = M(2, .) ray is 1 / (distance along the ray to the board plane), so
+    // w > 0 says the ray meets the plane in front of the camera, whatever z's sign.
+    const int ch = rays.channels();
     for (int i = 0; i < Hh; ++i) {
-      const float* ray = rays.ptr<float>(sroi.y + i) + 2 * sroi.x;
+      const float* ray = rays.ptr<float>(sroi.y + i) + ch * sroi.x;
       float* out = map.ptr<float>(i);
       for (int j = 0; j < W; ++j) {
-        const float x = ray[2 * j], y = ray[2 * j + 1];
-        const float w = M(2, 0) * x + M(2, 1) * y + M(2, 2);
-        // w > 0: the ray meets the board plane in front of the camera (NaN rays fail the test).
+        const float x = ray[ch * j], y = ray[ch * j + 1], z = ch == 3 ? ray[ch * j + 2] : 1.0f;
+        const float w = M(2, 0) * x + M(2, 1) * y + M(2, 2) * z;
+        // NaN rays fail the test.
         const bool front = w > 1e-9f;
         const float inv = front ? 1.0f / w : 0.0f;
-        out[2 * j] = front ? (M(0, 0) * x + M(0, 1) * y + M(0, 2)) * inv : -1e6f;
-        out[2 * j + 1] = front ? (M(1, 0) * x + M(1, 1) * y + M(1, 2)) * inv : -1e6f;
+        out[2 * j] = front ? (M(0, 0) * x + M(0, 1) * y + M(0, 2) * z) * inv : -1e6f;
+        out[2 * j + 1] = front ? (M(1, 0) * x + M(1, 1) * y + M(1, 2) * z) * inv : -1e6f;
       }
     }
     cv::remap(levels[level], sampled, map, cv::noArray(), cv::INTER_LINEAR,
@@ -309,6 +325,7 @@ void SyntheticCamera::Impl::sample_board(const cv::Rect& roi, const Eigen::Matri
 // then resampled at the pixel centres of `roi` through the true lens. False if a sheet corner is behind the camera (the
 // homography would fold the plane's far side in): the caller ray-casts that frame.
 bool SyntheticCamera::Impl::warp_board(const cv::Rect& roi, const Eigen::Matrix3d& H, const Eigen::Matrix3d& Hinv) {
+  if (rays.channels() != 2) return false;  // a ray model's unit rays: ray-cast
   pixels.create(model.size(), CV_8UC2);
   pixels.setTo(cv::Scalar(0, 0));
   const cv::Size2d bs = board.board_size_m();

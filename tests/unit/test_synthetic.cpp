@@ -220,3 +220,55 @@ TEST(Views, RandomViewsHonourTheirLimitsAndCountDraws) {
   EXPECT_FALSE(random_board_view(rng, cam, target, vs, &draws).has_value());
   EXPECT_EQ(draws, 37);
 }
+
+// A 185-degree fisheye (1280x1024, equidistant, 92.5 degrees at the short side's edge): a board
+// straight ahead is detected where the model puts its corners, and a board 93 degrees from the
+// axis, behind the camera plane, is rendered and detected where the model puts its corners too
+// (the rays of the plane Z = 1 end at 90 degrees; the fisheye's unit rays do not).
+TEST(SyntheticCamera, FisheyeRendersBeyondNinetyDegrees) {
+  const double f = 512 / (92.5 * M_PI / 180);
+  const CameraModel cam(1280, 1024, LensModel::kFisheye,
+                        {f, f * 1.002, 640.3, 511.2, 0.01, -0.002, 0, 0});
+  const Board target(BoardSpec::parse("charuco:9x6:0.04:0.026:DICT_4X4_50"));
+  const cv::Size2d bs = target.board_size_m();
+  // The board centred on the direction theta from the axis (in the x-z plane), at distance d,
+  // facing the camera.
+  auto facing = [&](double theta, double d) {
+    const Eigen::Vector3d z(std::sin(theta), 0, std::cos(theta)), y(0, 1, 0);
+    Eigen::Matrix3d R;
+    R << y.cross(z), y, z;
+    return Pose::from_rotation(R, d * z - R * Eigen::Vector3d(bs.width / 2, bs.height / 2, 0));
+  };
+  for (const Renderer r : {Renderer::kRayCast, Renderer::kWarp}) {
+    SCOPED_TRACE(name(r));
+    SyntheticCamera sc(cam, target, with_renderer(r));
+    for (const double theta_deg : {0.0, 93.0}) {
+      SCOPED_TRACE(theta_deg);
+      const Pose p = facing(theta_deg * M_PI / 180, theta_deg > 0 ? 0.3 : 0.45);
+      const cv::Mat img = sc.render(p);
+      const Detection d = target.detect(img);
+      ASSERT_GE(d.size(), static_cast<size_t>(target.num_corners()) / 2);
+      const std::vector<cv::Point2d> truth = sc.true_corners(p);
+      double mx = 0;
+      const double rms = rms_error(d, truth, &mx);
+      EXPECT_LT(rms, 0.15);
+      EXPECT_LT(mx, 0.5);
+      // Beyond 90 degrees: the detected corners' rays point behind the camera plane.
+      int behind = 0;
+      for (const cv::Point2d& c : d.image_points) {
+        Eigen::Vector3d ray;
+        ASSERT_TRUE(cam.unproject_ray(Eigen::Vector2d(c.x, c.y), &ray));
+        behind += ray.z() < 0;
+      }
+      if (theta_deg > 0) {
+        EXPECT_GT(behind, static_cast<int>(d.size()) / 4);
+      } else {
+        EXPECT_EQ(behind, 0);
+      }
+      std::printf(
+          "%s, fisheye board at %.0f degrees: %zu corners, RMS %.4f px, max %.4f px, %d behind Z = "
+          "0\n",
+          name(r), theta_deg, d.size(), rms, mx, behind);
+    }
+  }
+}
