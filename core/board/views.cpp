@@ -7,14 +7,40 @@
 namespace posecal {
 
 Pose board_pose_at(const Board& board, const Eigen::Vector3d& centre_cam, double tilt_axis_rad,
-                   double tilt_rad, double roll_rad) {
+                   double tilt_rad, double roll_rad, const Eigen::Matrix3d& facing) {
   const Eigen::Vector3d axis(std::cos(tilt_axis_rad), std::sin(tilt_axis_rad), 0.0);
   const Eigen::Matrix3d R =
-      Eigen::AngleAxisd(roll_rad, Eigen::Vector3d::UnitZ()).toRotationMatrix() *
+      facing * Eigen::AngleAxisd(roll_rad, Eigen::Vector3d::UnitZ()).toRotationMatrix() *
       Eigen::AngleAxisd(tilt_rad, axis).toRotationMatrix();
   const cv::Size2d bs = board.board_size_m();
   const Eigen::Vector3d centre_board(bs.width / 2, bs.height / 2, 0.0);
   return Pose::from_rotation(R, centre_cam - R * centre_board);
+}
+
+bool board_frame_at_pixel(const CameraModel& model, const Eigen::Vector2d& px, double depth,
+                          Eigen::Vector3d* centre_cam, Eigen::Matrix3d* facing,
+                          double fold_free_r) {
+  if (!is_ray_model(model.lens_model())) {
+    Eigen::Vector2d xn;
+    if (!model.unproject(px, &xn, fold_free_r)) return false;
+    *centre_cam = Eigen::Vector3d(xn.x(), xn.y(), 1.0) * depth;
+    facing->setIdentity();
+    return true;
+  }
+  Eigen::Vector3d ray;
+  if (!model.unproject_ray(px, &ray)) return false;
+  *centre_cam = ray * depth;
+  // The least rotation taking z onto the ray: about z x ray by the angle between them (about x
+  // for a ray straight behind the camera, which no model reaches).
+  const Eigen::Vector3d axis = Eigen::Vector3d::UnitZ().cross(ray);
+  const double s = axis.norm();
+  const double angle = std::atan2(s, ray.z());
+  *facing =
+      s > 1e-12
+          ? Eigen::AngleAxisd(angle, axis / s).toRotationMatrix()
+          : (ray.z() > 0 ? Eigen::Matrix3d::Identity()
+                         : Eigen::AngleAxisd(M_PI, Eigen::Vector3d::UnitX()).toRotationMatrix());
+  return true;
 }
 
 bool board_fully_visible(const CameraModel& model, const Board& board, const Pose& T_cam_board,
@@ -57,14 +83,14 @@ std::optional<Pose> random_board_view(std::mt19937_64& rng, const CameraModel& m
         s.min_width_fraction + (s.max_width_fraction - s.min_width_fraction) * U(rng);
     const double depth = model.fx() * bs.width / (frac * model.width());
     const Eigen::Vector2d px(U(rng) * (model.width() - 1), U(rng) * (model.height() - 1));
-    Eigen::Vector2d xn;
-    if (!model.unproject(px, &xn)) continue;
-    const Eigen::Vector3d centre(xn.x() * depth, xn.y() * depth, depth);
+    Eigen::Vector3d centre;
+    Eigen::Matrix3d facing;
+    if (!board_frame_at_pixel(model, px, depth, &centre, &facing)) continue;
     // Tilt magnitude uniform in [0, max]: spreads views over the angular range.
     const double tilt = s.max_tilt_deg * pi / 180.0 * U(rng);
     const double axis = 2 * pi * U(rng);
     const double roll = (U(rng) - 0.5) * pi / 2;  // +-45 deg
-    const Pose pose = board_pose_at(board, centre, axis, tilt, roll);
+    const Pose pose = board_pose_at(board, centre, axis, tilt, roll, facing);
     if (board_fully_visible(model, board, pose, s.margin_px)) return pose;
   }
   return std::nullopt;
@@ -76,6 +102,7 @@ ViewSampler::ViewSampler(const CameraModel& model, const Board& board, const Vie
   centre_board_ = Eigen::Vector3d(bs.width / 2, bs.height / 2, 0.0);
   board_width_m_ = bs.width;
   fold_free_r_ = model.fold_free_radius();
+  ray_model_ = is_ray_model(model.lens_model());
   // Any centre range lies within the image less the margins.
   reference_area_ = std::max(0.0, model.width() - 1 - 2 * s_.margin_px) * std::max(0.0, model.height() - 1 - 2 * s_.margin_px);
 }
@@ -179,11 +206,14 @@ bool board_outline_in_view(const CameraModel& model, const std::vector<cv::Point
 }
 
 bool ViewSampler::realise(const ViewDraw& view, Eigen::Matrix3d* R_out, Eigen::Vector3d* t_out) const {
-  Eigen::Vector2d xn;
-  if (!(view.width_fraction > 0) || !model_.unproject(view.centre_px, &xn, fold_free_r_)) return false;
+  if (!(view.width_fraction > 0)) return false;
   const double depth = model_.fx() * board_width_m_ / (view.width_fraction * model_.width());
-  const Eigen::Matrix3d R = view_rotation(view);
-  const Eigen::Vector3d centre(xn.x() * depth, xn.y() * depth, depth);
+  Eigen::Vector3d centre;
+  Eigen::Matrix3d facing;
+  if (!board_frame_at_pixel(model_, view.centre_px, depth, &centre, &facing, fold_free_r_))
+    return false;
+  const Eigen::Matrix3d R =
+      ray_model_ ? Eigen::Matrix3d(facing * view_rotation(view)) : view_rotation(view);
   const Eigen::Vector3d t = centre - R * centre_board_;
   if (!board_outline_in_view(model_, outline_, R, t, s_.margin_px)) return false;
   *R_out = R;

@@ -16,8 +16,23 @@ namespace posecal {
 // Board pose with the board's centre at `centre_cam` (camera frame), rotated from fronto-parallel
 // (R = I: board x to the image's right, y down) by `tilt_rad` about the in-plane axis at angle
 // `tilt_axis_rad` from the image x axis, then rolled by `roll_rad` about the optical axis.
+// `facing` (optional) is applied after them: the orientation a fronto-parallel board has at that
+// place (board_frame_at_pixel()).
 Pose board_pose_at(const Board& board, const Eigen::Vector3d& centre_cam, double tilt_axis_rad,
-                   double tilt_rad, double roll_rad);
+                   double tilt_rad, double roll_rad,
+                   const Eigen::Matrix3d& facing = Eigen::Matrix3d::Identity());
+
+// Where the centre of a board seen at pixel `px` lies at `depth`, and how a board there faces
+// the camera. For the models of the plane Z = 1, depth is the Z coordinate and the board is
+// parallel to the image plane (facing = I), as the paper places it. For a ray model (the
+// fisheye) depth is the distance along the pixel's ray and the board faces the camera (facing
+// turns the optical axis onto the ray, the least rotation that does): a board parallel to the
+// image plane is seen edge-on towards 90 degrees from the axis and not at all beyond. False if
+// the pixel has no preimage. `fold_free_r`: CameraModel::fold_free_radius() of the model, a
+// shortcut for many calls.
+bool board_frame_at_pixel(const CameraModel& model, const Eigen::Vector2d& px, double depth,
+                          Eigen::Vector3d* centre_cam, Eigen::Matrix3d* facing,
+                          double fold_free_r = 0);
 
 // True if the whole board (its outline, sampled densely, and every corner) projects inside the
 // image with `margin_px` to spare, in front of the camera.
@@ -85,6 +100,7 @@ class ViewSampler {
   double board_width_m_ = 0;
   double reference_area_ = 0;  // the image less the margins: acceptance 1
   double fold_free_r_ = 0;     // CameraModel::fold_free_radius() of model_
+  bool ray_model_ = false;     // boards face the camera (board_frame_at_pixel())
 };
 
 // `count` random views (throws Error(kInternal) if the camera cannot see the board at all).

@@ -41,11 +41,20 @@ template <class M>
   Eigen::Matrix<double, 3, 6> dpc = Eigen::Matrix<double, 3, 6>::Zero();
   dpc.template rightCols<3>().setIdentity();
   double Msum[kT][kT] = {};  // [A B; B^T D], upper triangle
+  // A ray model sees directions up to its fold (beyond 90 degrees for a fisheye), the others
+  // the half-space in front of the camera.
+  [[maybe_unused]] double max_theta = 0;
+  if constexpr (M::kRayModel) max_theta = M::max_theta(model.params().data() + kNumPinholeParams);
   for (size_t p = 0; p < board_points.size(); ++p) {
     const cv::Point3d& P = board_points[p];
     const Eigen::Vector3d RP = R * Eigen::Vector3d(P.x, P.y, P.z);
     const Eigen::Vector3d pc = RP + t;
-    if (!(pc.z() > 1e-9)) continue;
+    if constexpr (M::kRayModel) {
+      if (!(pc.squaredNorm() > 1e-18) || !(std::atan2(pc.head<2>().norm(), pc.z()) < max_theta))
+        continue;
+    } else {
+      if (!(pc.z() > 1e-9)) continue;
+    }
     double u, v;
     M::project_jacobians(model.params().data(), pc, &u, &v, &Jc, Ji.data());
     if (!(u >= -0.5 && u <= model.width() - 0.5 && v >= -0.5 && v <= model.height() - 0.5)) {
@@ -270,14 +279,16 @@ std::vector<int> free_intrinsics(const std::vector<bool>& fixed) {
 
 bool ray_intrinsics_jacobian(const CameraModel& model, const std::vector<int>& free_idx, const Eigen::Vector2d& pixel,
                              Eigen::Matrix<double, 2, Eigen::Dynamic>* Jf) {
-  Eigen::Vector2d xn, uv;
-  if (!model.unproject(pixel, &xn)) return false;
+  // The pixel's unit ray: the whole field of view (beyond 90 degrees for a fisheye); a pinhole
+  // model's intrinsic Jacobian does not depend on the point's distance along the ray.
+  Eigen::Vector3d ray;
+  Eigen::Vector2d uv;
+  if (!model.unproject_ray(pixel, &ray)) return false;
   const int n = model.num_params();
   Eigen::Matrix<double, 2, Eigen::Dynamic> J(2, n);
   with_lens_model(model.lens_model(), [&](auto lm) {
     Eigen::Matrix<double, 2, 3> Jc;
-    decltype(lm)::project_jacobians(model.params().data(), Eigen::Vector3d(xn.x(), xn.y(), 1.0), &uv.x(), &uv.y(), &Jc,
-                                    J.data());
+    decltype(lm)::project_jacobians(model.params().data(), ray, &uv.x(), &uv.y(), &Jc, J.data());
   });
   Jf->resize(2, static_cast<Eigen::Index>(free_idx.size()));
   for (size_t k = 0; k < free_idx.size(); ++k) Jf->col(static_cast<Eigen::Index>(k)) = J.col(free_idx[k]);

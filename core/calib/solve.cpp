@@ -9,6 +9,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstdlib>
+#include <limits>
 #include <mutex>
 #include <opencv2/calib3d.hpp>
 
@@ -86,7 +87,14 @@ struct ReprojectionCost {
     pc[0] += rt[3];
     pc[1] += rt[4];
     pc[2] += rt[5];
-    if (!(pc[2] > T(1e-9))) return false;  // behind the camera: reject the step
+    if constexpr (M::kRayModel) {
+      // A ray model sees beyond 90 degrees; only the camera's centre and the ray straight behind
+      // it have no projection.
+      if (!(pc[0] * pc[0] + pc[1] * pc[1] > T(1e-18) * pc[2] * pc[2] || pc[2] > T(1e-9)))
+        return false;
+    } else {
+      if (!(pc[2] > T(1e-9))) return false;  // behind the camera: reject the step
+    }
     T params[N];
     for (int i = 0; i < N; ++i) params[i] = intrinsics[i];
     if (aspect > 0) params[1] = params[0] * T(aspect);
@@ -247,6 +255,82 @@ bool zhang_initial(const std::vector<Observation>& frames, cv::Size size, LensMo
   return true;
 }
 
+// Mean squared pixel error of every frame's board under the equidistant projection (theta_d =
+// theta) with focal length f and principal point c, each pose from its rays by the linear fit
+// (pose_from_rays without refinement); infinity if a frame's pose is not determined. `poses`
+// (optional) receives the poses, refined.
+double equidistant_fit(const std::vector<Observation>& frames, double f, const Eigen::Vector2d& c,
+                       std::vector<Pose>* poses) {
+  double sum = 0;
+  size_t count = 0;
+  std::vector<cv::Point3d> object;
+  std::vector<Eigen::Vector3d> rays;
+  if (poses) poses->clear();
+  for (const Observation& o : frames) {
+    object.clear();
+    rays.clear();
+    for (size_t i = 0; i < o.size(); ++i) {
+      const Eigen::Vector2d d = (Eigen::Vector2d(o.image_points[i].x, o.image_points[i].y) - c) / f;
+      const double theta = d.norm();
+      if (!(theta < M_PI)) continue;  // beyond the field of any lens with this f
+      const double s = theta > 1e-12 ? std::sin(theta) / theta : 1.0;
+      rays.emplace_back(s * d.x(), s * d.y(), std::cos(theta));
+      object.push_back(o.board_points[i]);
+    }
+    Pose pose;
+    if (!pose_from_rays(object, rays, &pose, poses != nullptr))
+      return std::numeric_limits<double>::infinity();
+    if (poses) poses->push_back(pose);
+    const Eigen::Matrix3d R = pose.R();
+    for (size_t i = 0; i < o.size(); ++i) {
+      const cv::Point3d& P = o.board_points[i];
+      const Eigen::Vector3d pc = R * Eigen::Vector3d(P.x, P.y, P.z) + pose.t;
+      const double rho = pc.head<2>().norm();
+      const double theta = std::atan2(rho, pc.z());
+      const Eigen::Vector2d uv = c + (rho > 0 ? f * theta / rho : 0.0) * pc.head<2>();
+      sum += (uv - Eigen::Vector2d(o.image_points[i].x, o.image_points[i].y)).squaredNorm();
+      ++count;
+    }
+  }
+  return count > 0 ? sum / static_cast<double>(count) : std::numeric_limits<double>::infinity();
+}
+
+// A ray model's start (the fisheye; Zhang's pinhole start cannot hold rays beyond 90 degrees and
+// is poor long before): the equidistant projection, distortion 0, principal point at the image
+// centre, and the focal length that best explains every frame (equidistant_fit): a grid from
+// 0.05 to 5 image widths, then golden-section search on log f about the best grid point; the
+// poses refined at that f.
+bool equidistant_initial(const std::vector<Observation>& frames, cv::Size size, LensModel lens,
+                         CameraModel* model, std::vector<Pose>* poses) {
+  const Eigen::Vector2d c((size.width - 1) * 0.5, (size.height - 1) * 0.5);
+  const double lo = std::log(0.05 * size.width), hi = std::log(5.0 * size.width);
+  constexpr int kGrid = 60;
+  auto cost = [&](double log_f) { return equidistant_fit(frames, std::exp(log_f), c, nullptr); };
+  int best = -1;
+  double best_cost = std::numeric_limits<double>::infinity();
+  for (int i = 0; i < kGrid; ++i) {
+    const double v = cost(lo + (hi - lo) * i / (kGrid - 1));
+    if (v < best_cost) best_cost = v, best = i;
+  }
+  if (best < 0) return false;
+  const double step = (hi - lo) / (kGrid - 1);
+  double a = lo + step * std::max(0, best - 1), b = lo + step * std::min(kGrid - 1, best + 1);
+  const double g = 0.5 * (std::sqrt(5.0) - 1);
+  double x1 = b - g * (b - a), x2 = a + g * (b - a), f1 = cost(x1), f2 = cost(x2);
+  for (int it = 0; it < 40; ++it) {
+    if (f1 < f2) {
+      b = x2, x2 = x1, f2 = f1, x1 = b - g * (b - a), f1 = cost(x1);
+    } else {
+      a = x1, x1 = x2, f1 = f2, x2 = a + g * (b - a), f2 = cost(x2);
+    }
+  }
+  const double f = std::exp(0.5 * (a + b));
+  if (!std::isfinite(equidistant_fit(frames, f, c, poses)) || poses->size() != frames.size())
+    return false;
+  *model = CameraModel::pinhole(lens, size.width, size.height, f, f, c.x(), c.y());
+  return true;
+}
+
 // Ceres logs a warning through glog whenever Levenberg-Marquardt rejects a step (normal for the
 // degenerate single views the bootstrap tries). posecal runs inside other people's processes and
 // must not write to their stderr: raise glog's threshold to ERROR once, unless
@@ -293,7 +377,8 @@ std::vector<bool> fixed_intrinsics(const CalibrationOptions& options) {
 }
 
 // The starting point of the bundle adjustment: the warm start where it fits (frames beyond its
-// poses get theirs from PnP), else Zhang's method; parameters fixed at zero start at zero.
+// poses get theirs from PnP), else Zhang's method (a ray model: equidistant_initial()); parameters
+// fixed at zero start at zero.
 void initial_solution(const std::vector<Observation>& frames, cv::Size image_size, const CalibrationOptions& options,
                       const WarmStart* warm_start, const std::vector<bool>& fixed, CameraModel* model,
                       std::vector<Pose>* poses) {
@@ -317,8 +402,15 @@ void initial_solution(const std::vector<Observation>& frames, cv::Size image_siz
       }
       poses->push_back(p);
     }
-  } else if (!zhang_initial(frames, image_size, lens, options.fix_principal_point, options.fix_aspect_ratio, model,
-                            poses)) {
+  } else if (is_ray_model(lens)) {
+    if (!equidistant_initial(frames, image_size, lens, model, poses)) {
+      throw Error(ErrorCode::kDegenerate,
+                  "calibration: no initial solution (equidistant fit failed): the views do not "
+                  "determine the board "
+                  "poses, e.g. too few points not on a line");
+    }
+  } else if (!zhang_initial(frames, image_size, lens, options.fix_principal_point,
+                            options.fix_aspect_ratio, model, poses)) {
     throw Error(ErrorCode::kDegenerate,
                 "calibration: no initial solution (Zhang's method failed): the views do not "
                 "determine the focal length, e.g. they are all parallel to the image plane");

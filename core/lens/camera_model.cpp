@@ -104,19 +104,26 @@ namespace {
 
 // True if the model projects the direction p_cam (see CameraModel::project).
 bool in_field(const CameraModel& m, const Eigen::Vector3d& p_cam) {
-  if (!is_ray_model(m.lens_model())) return p_cam.z() > 0;
-  if (!p_cam.allFinite() || p_cam.isZero()) return false;
-  const double theta = std::atan2(p_cam.head<2>().norm(), p_cam.z());
-  return theta < M_PI &&
-         lens::Fisheye::max_theta(m.params().data() + kNumPinholeParams, theta) >= theta;
+  return with_lens_model(m.lens_model(), [&](auto lm) {
+    using M = decltype(lm);
+    if constexpr (M::kRayModel) {
+      if (!p_cam.allFinite() || p_cam.isZero()) return false;
+      const double theta = std::atan2(p_cam.head<2>().norm(), p_cam.z());
+      return theta < M_PI && M::max_theta(m.params().data() + kNumPinholeParams, theta) >= theta;
+    } else {
+      return p_cam.z() > 0;
+    }
+  });
 }
 
 }  // namespace
 
 double CameraModel::max_ray_angle() const {
-  if (model_ == LensModel::kFisheye)
-    return lens::Fisheye::max_theta(params_.data() + kNumPinholeParams);
-  return 0.5 * M_PI * (1 - 1e-9);
+  return with_lens_model(model_, [&](auto lm) {
+    using M = decltype(lm);
+    if constexpr (M::kRayModel) return M::max_theta(params_.data() + kNumPinholeParams);
+    return 0.5 * M_PI * (1 - 1e-9);
+  });
 }
 
 bool CameraModel::project(const Eigen::Vector3d& p_cam, Eigen::Vector2d* uv) const {

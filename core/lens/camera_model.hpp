@@ -93,7 +93,9 @@ class CameraModel {
   // positive definite); 0 if none is known. A bound, not the exact fold radius.
   double fold_free_radius() const;
   // Per-pixel distortion magnitude in pixels: |p - K * unproject(p)| sampled at every `step`
-  // pixels (cell (i, j) is pixel (j * step, i * step)). CV_32F; NaN where unproject fails.
+  // pixels (cell (i, j) is pixel (j * step, i * step)). CV_32F; NaN where unproject fails. A ray
+  // model's (the fisheye's) is its departure from the equidistant projection, f |theta_d - theta|,
+  // NaN where unproject_ray fails.
   cv::Mat distortion_map(int step = 1) const;
   // Map of normalised rays for every pixel (CV_32FC2, NaN where unproject fails), optionally
   // supersampled: sample (i, j) of an n-times map is pixel ((j + 0.5) / n - 0.5, ...).

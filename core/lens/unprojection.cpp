@@ -219,6 +219,28 @@ cv::Mat CameraModel::distortion_map(int step) const {
   const double fold_free_r = fold_free_radius();
   with_lens_model(model_, [&](auto m) {
     using M = decltype(m);
+    if constexpr (M::kRayModel) {
+      // A ray model's distortion is its departure from the equidistant projection (theta_d =
+      // theta), where its coefficients act: f (theta_d - theta) along the radius, over the whole
+      // field of view (the displacement from a pinhole has no meaning beyond 90 degrees).
+      const double max_th = M::max_theta(dist);
+      const float nan = std::numeric_limits<float>::quiet_NaN();
+      for (int i = 0; i < rows; ++i) {
+        const double ty = (i * step - cy()) / fy();
+        for (int j = 0; j < cols; ++j) {
+          const double tx = (j * step - cx()) / fx();
+          const double td = std::hypot(tx, ty);
+          double theta;
+          if (!M::undistort_angle(dist, td, max_th, &theta)) {
+            map.at<float>(i, j) = nan;
+            continue;
+          }
+          const double scale = td > 0 ? std::abs(1.0 - theta / td) : 0.0;
+          map.at<float>(i, j) = static_cast<float>(std::hypot(fx() * tx, fy() * ty) * scale);
+        }
+      }
+      return;
+    }
     // Row start of the previous row, for the next row's warm start.
     bool have_above = false;
     double ax = 0, ay = 0;

@@ -97,6 +97,8 @@ struct CalibrationEngine::Impl {
   void after_calibration();
   // Recalibrates with the keyframes; false (keyframe dropped, event emitted) if it is rejected.
   bool recalibrate();
+  std::vector<size_t> outlier_corners(const CalibrationResult& r,
+                                      const std::vector<Observation>& frames) const;
   void start_from_prior();
   bool scoring() const { return opt.pose_candidates > 1 || opt.prospective_convergence; }
 

@@ -118,10 +118,18 @@ TargetPose PoseGenerator::pinhole_pose(int axis, double tilt_deg, double shift_p
   // Step 4: shift the board's centre along the image axis (cx: x, cy: y).
   Eigen::Vector2d px(estimate.cx(), estimate.cy());
   px[axis == 0 ? 1 : 0] += shift_px;
-  Eigen::Vector2d xn;
-  if (!estimate.unproject(px, &xn)) xn = Eigen::Vector2d((px.x() - estimate.cx()) / estimate.fx(), (px.y() - estimate.cy()) / estimate.fy());
-  const Eigen::Vector3d centre = Eigen::Vector3d(xn.x(), xn.y(), 1.0) * d_nominal;
-  out.T_cam_board = Pose::from_rotation(R, centre - R * Eigen::Vector3d(bs.width / 2, bs.height / 2, 0));
+  // A ray model's board faces the camera (board_frame_at_pixel), the tilt is about its own axes.
+  Eigen::Vector3d centre;
+  Eigen::Matrix3d facing;
+  if (!board_frame_at_pixel(estimate, px, d_nominal, &centre, &facing)) {
+    centre = Eigen::Vector3d((px.x() - estimate.cx()) / estimate.fx(),
+                             (px.y() - estimate.cy()) / estimate.fy(), 1.0) *
+             d_nominal;
+    facing.setIdentity();
+  }
+  const Eigen::Matrix3d Rf = facing * R;
+  out.T_cam_board =
+      Pose::from_rotation(Rf, centre - Rf * Eigen::Vector3d(bs.width / 2, bs.height / 2, 0));
   if (!keep_in_view(estimate, &out.T_cam_board, &out.note)) {
     out.note += (out.note.empty() ? "" : "; ");
     out.note += "board cannot be fully visible at this tilt";
@@ -230,7 +238,26 @@ TargetPose PoseGenerator::distortion_pose_for(const CameraModel& estimate, const
   Pose pose;
   bool placed = false;
   const double cxi = 0.5 * size_.width, cyi = 0.5 * size_.height;
-  for (int k = 0; k <= 20 && !placed; ++k) {
+  const bool ray_model = is_ray_model(estimate.lens_model());
+  for (int k = 0; k <= 20 && !placed && ray_model; ++k) {
+    // A ray model (the fisheye): the board faces the camera, centred on the footprint's centre at
+    // the distance where it spans long_px (equidistant: image size = f x angle), and steps
+    // towards the image centre until it fits.
+    const double f = k / 20.0;
+    const Eigen::Vector2d c0(x0 + w_px / 2, y0 + h_px / 2);
+    const Eigen::Vector2d c = c0 + f * (Eigen::Vector2d(cxi, cyi) - c0);
+    Eigen::Vector3d centre;
+    Eigen::Matrix3d facing;
+    if (!board_frame_at_pixel(estimate, c, Z, &centre, &facing)) continue;
+    const Eigen::Matrix3d Rf = facing * R;
+    pose = Pose::from_rotation(Rf, centre - Rf * Eigen::Vector3d(bs.width / 2, bs.height / 2, 0));
+    if (board_fully_visible(estimate, board_, pose, margin)) {
+      placed = true;
+      if (k > 0)
+        out.note = "shifted " + std::to_string(k * 5) + "% towards the centre to stay in view";
+    }
+  }
+  for (int k = 0; k <= 20 && !placed && !ray_model; ++k) {
     // Distortion bends the footprint; step towards the image centre until the board fits.
     const double f = k / 20.0;
     const double ox = x0 + f * (cxi - (x0 + w_px / 2)), oy = y0 + f * (cyi - (y0 + h_px / 2));
@@ -248,8 +275,8 @@ TargetPose PoseGenerator::distortion_pose_for(const CameraModel& estimate, const
     // Tilt about the board's centre, about the axis perpendicular to the direction from the
     // image centre, so the pose also carries perspective (pinhole) information.
     const Eigen::Vector3d c = pose.apply(Eigen::Vector3d(bs.width / 2, bs.height / 2, 0));
-    Eigen::Vector3d radial(c.x() / c.z(), c.y() / c.z(), 0.0);
-    if (radial.norm() < 1e-6) radial = Eigen::Vector3d::UnitX();
+    Eigen::Vector3d radial(c.x(), c.y(), 0.0);  // towards the centre's ray (also beyond 90 degrees)
+    if (radial.norm() < 1e-6 * c.norm()) radial = Eigen::Vector3d::UnitX();
     const Eigen::Vector3d axis = Eigen::Vector3d::UnitZ().cross(radial.normalized());
     const Eigen::Matrix3d Rt = Eigen::AngleAxisd(options_.distortion_tilt_deg * kPi / 180.0, axis).toRotationMatrix();
     const Eigen::Matrix3d Rn = Rt * pose.R();

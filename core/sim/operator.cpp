@@ -3,6 +3,7 @@
 #include <cmath>
 #include <opencv2/calib3d.hpp>
 
+#include "board/views.hpp"
 #include "calib/pose_estimation.hpp"
 #include "common/error.hpp"
 #include "lens/geometry.hpp"
@@ -92,10 +93,15 @@ OperatorOptions operator_preset(const std::string& name) {
 // its centre seen at pixel centre_px.
 Pose SimulatedOperator::board_at(double width_fraction, const Eigen::Vector2d& centre_px, const Eigen::Matrix3d& R) const {
   const double depth = truth_.fx() * board_.board_size_m().width / (width_fraction * truth_.width());
-  Eigen::Vector2d xn;
-  if (!truth_.unproject(centre_px, &xn)) xn.setZero();
-  const Eigen::Vector3d c(xn.x() * depth, xn.y() * depth, depth);
-  return Pose::from_rotation(R, c - R * board_centre(board_));
+  // A ray model's (fisheye's) board faces the camera where it is (board_frame_at_pixel).
+  Eigen::Vector3d c;
+  Eigen::Matrix3d facing;
+  if (!board_frame_at_pixel(truth_, centre_px, depth, &c, &facing)) {
+    c = Eigen::Vector3d(0, 0, depth);
+    facing.setIdentity();
+  }
+  const Eigen::Matrix3d Rf = facing * R;
+  return Pose::from_rotation(Rf, c - Rf * board_centre(board_));
 }
 
 Pose SimulatedOperator::bootstrap_goal() {
@@ -160,6 +166,20 @@ Pose SimulatedOperator::attempt_goal(const GuidanceInfo& g) {
       obj.push_back(pts[i]);
       img.push_back(overlay[i]);
     }
+  }
+  if (is_ray_model(truth_.lens_model())) {
+    // Rays, not the plane Z = 1: the overlay may lie beyond 90 degrees from the axis.
+    std::vector<cv::Point3d> seen;
+    std::vector<Eigen::Vector3d> rays;
+    for (size_t i = 0; i < obj.size(); ++i) {
+      Eigen::Vector3d ray;
+      if (!truth_.unproject_ray(Eigen::Vector2d(img[i].x, img[i].y), &ray)) continue;
+      seen.push_back(obj[i]);
+      rays.push_back(ray);
+    }
+    Pose p;
+    if (seen.size() >= 6 && pose_from_rays(seen, rays, &p)) aligned = p;
+    return perturb(aligned);
   }
   const PnPInput in = pnp_input(truth_, obj, img);
   if (in.object.size() >= 6) {
@@ -247,10 +267,14 @@ CameraModel sample_camera(const CameraModel& reference, double rel_std, uint64_t
     for (double& v : p) v += rel_std * v * N(rng);
     CameraModel m(reference.width(), reference.height(), reference.lens_model(), p);
     if (!m.is_valid()) continue;
-    // The lens model must be one-to-one over the whole image.
-    const cv::Mat dm = m.distortion_map(std::max(8, reference.width() / 64));
+    // The lens model must be one-to-one over the whole image (a fisheye's: wherever the
+    // reference's is; the corners beyond its image circle see nothing).
+    const int step = std::max(8, reference.width() / 64);
+    const cv::Mat dm = m.distortion_map(step), ref = reference.distortion_map(step);
     bool ok = true;
-    for (auto it = dm.begin<float>(); it != dm.end<float>() && ok; ++it) ok = std::isfinite(*it);
+    for (int i = 0; i < dm.rows && ok; ++i)
+      for (int j = 0; j < dm.cols && ok; ++j)
+        ok = std::isfinite(dm.at<float>(i, j)) || !std::isfinite(ref.at<float>(i, j));
     if (ok) return m;
   }
   throw Error(ErrorCode::kInternal, "could not sample a valid camera around the reference");

@@ -2,12 +2,14 @@
 
 #include <Eigen/Dense>
 #include <opencv2/calib3d.hpp>
+#include <tuple>
 
 #include "board/views.hpp"
 #include "calib/calibration.hpp"
 #include "calib/expected_error.hpp"
 #include "calib/information.hpp"
 #include "calib/metrics.hpp"
+#include "calib/pose_estimation.hpp"
 #include "common/error.hpp"
 #include "lens/reference_models.hpp"
 #include "records/fleet.hpp"
@@ -741,4 +743,134 @@ TEST(Prior, TheFleetPriorIsTheUnitsMeanAndCovariance) {
   EXPECT_EQ(p.noise_px, 0.2);
   units.resize(10);
   EXPECT_THROW(fleet_prior(LensModel::kOpenCV5, units, 0.2), Error);  // 10 units for 8 parameters
+}
+
+namespace {
+
+// A 185-degree fisheye (1280x1024) and a board centred theta from the axis in the x-z plane, at
+// distance d, facing the camera.
+CameraModel fisheye_185() {
+  const double f = 512 / (92.5 * M_PI / 180);
+  return CameraModel(1280, 1024, LensModel::kFisheye,
+                     {f, f * 1.002, 640.3, 511.2, 0.01, -0.002, 0.0003, -0.00002});
+}
+
+Pose board_facing(const Board& board, double theta, double azimuth, double d) {
+  const cv::Size2d bs = board.board_size_m();
+  const Eigen::Vector3d z(std::sin(theta) * std::cos(azimuth), std::sin(theta) * std::sin(azimuth),
+                          std::cos(theta));
+  const Eigen::Vector3d x = Eigen::Vector3d::UnitY().cross(z).normalized(), y = z.cross(x);
+  Eigen::Matrix3d R;
+  R << x, y, z;
+  return Pose::from_rotation(R, d * z - R * Eigen::Vector3d(bs.width / 2, bs.height / 2, 0));
+}
+
+// Exact projections of every corner the model sees.
+Observation exact_observation(const CameraModel& m, const Board& board, const Pose& p) {
+  Observation o;
+  for (const cv::Point3d& c : board.corners()) {
+    Eigen::Vector2d uv;
+    if (!m.project(p.apply(Eigen::Vector3d(c.x, c.y, c.z)), &uv) || uv.x() < 0 || uv.y() < 0 ||
+        uv.x() > m.width() - 1 || uv.y() > m.height() - 1)
+      continue;
+    o.image_points.emplace_back(uv.x(), uv.y());
+    o.board_points.push_back(c);
+    o.ids.push_back(static_cast<int>(o.ids.size()));
+  }
+  return o;
+}
+
+}  // namespace
+
+// The pose of a board from rays, also 100 degrees from the axis where solvePnP's plane Z = 1 ends;
+// and estimate_pose() of a fisheye finds it there.
+TEST(PoseEstimation, PoseFromRaysBeyondNinetyDegrees) {
+  const Board board;
+  const CameraModel cam = fisheye_185();
+  for (const double theta_deg : {0.0, 45.0, 100.0}) {
+    SCOPED_TRACE(theta_deg);
+    const Pose truth = board_facing(board, theta_deg * M_PI / 180, 0.4, 0.35);
+    std::vector<cv::Point3d> object = board.corners();
+    std::vector<Eigen::Vector3d> rays;
+    for (const cv::Point3d& c : object)
+      rays.push_back(truth.apply(Eigen::Vector3d(c.x, c.y, c.z)).normalized());
+    Pose p;
+    ASSERT_TRUE(pose_from_rays(object, rays, &p));
+    EXPECT_LT((p.t - truth.t).norm(), 1e-9);
+    EXPECT_LT(rotation_angle_between(p.R(), truth.R()), 1e-9);
+    ASSERT_TRUE(pose_from_rays(object, rays, &p, false));  // the linear fit alone is exact too
+    EXPECT_LT((p.t - truth.t).norm(), 1e-9);
+
+    const Observation o = exact_observation(cam, board, truth);
+    ASSERT_GE(o.size(), 20u);
+    Pose q;
+    double rms = -1;
+    ASSERT_TRUE(estimate_pose(cam, o, &q, &rms));
+    EXPECT_LT(rms, 1e-6);
+    EXPECT_LT((q.t - truth.t).norm(), 1e-6);
+  }
+  // Points on a line, too few points, a point off the plane, unequal sizes: no pose.
+  Pose p;
+  std::vector<cv::Point3d> line = {{0, 0, 0}, {0.1, 0, 0}, {0.2, 0, 0}, {0.3, 0, 0}, {0.4, 0, 0}};
+  std::vector<Eigen::Vector3d> rays;
+  for (const cv::Point3d& c : line) rays.push_back(Eigen::Vector3d(c.x - 0.2, 0.1, 1).normalized());
+  EXPECT_FALSE(pose_from_rays(line, rays, &p));
+  EXPECT_FALSE(
+      pose_from_rays({line.begin(), line.begin() + 3}, {rays.begin(), rays.begin() + 3}, &p));
+  line[2].z = 0.1;
+  EXPECT_FALSE(pose_from_rays(line, rays, &p));
+  EXPECT_FALSE(pose_from_rays(line, {rays.begin(), rays.begin() + 4}, &p));
+}
+
+// A fisheye calibration starts from the equidistant fit, not Zhang's pinhole start: exact corners
+// of four views (two beyond 90 degrees) give the truth back.
+TEST(Calibration, FisheyeStartsFromTheEquidistantFit) {
+  const Board board;
+  const CameraModel truth = fisheye_185();
+  std::vector<Observation> frames;
+  for (const auto& [theta_deg, azimuth, d] : std::vector<std::tuple<double, double, double>>{
+           {0, 0, 0.45}, {50, 2.0, 0.3}, {95, 0.3, 0.25}, {97, 3.6, 0.25}, {70, -1.4, 0.3}}) {
+    Pose p = board_facing(board, theta_deg * M_PI / 180, azimuth, d);
+    // Tilt the board 20 degrees about its own x axis: perspective for the focal length.
+    const cv::Size2d bs = board.board_size_m();
+    const Eigen::Vector3d c = p.apply(Eigen::Vector3d(bs.width / 2, bs.height / 2, 0));
+    const Eigen::Matrix3d R =
+        p.R() * Eigen::AngleAxisd(20 * M_PI / 180, Eigen::Vector3d::UnitX()).toRotationMatrix();
+    p = Pose::from_rotation(R, c - R * Eigen::Vector3d(bs.width / 2, bs.height / 2, 0));
+    frames.push_back(exact_observation(truth, board, p));
+    ASSERT_GE(frames.back().size(), 20u) << theta_deg;
+  }
+  CalibrationOptions o;
+  o.lens_model = LensModel::kFisheye;
+  const CalibrationResult r = calibrate(frames, truth.size(), o);
+  EXPECT_LT(r.rms_px, 1e-6);
+  for (int i = 0; i < truth.num_params(); ++i)
+    EXPECT_NEAR(r.model.params()[i], truth.params()[i],
+                1e-6 * std::max(1.0, std::abs(truth.params()[i])))
+        << truth.param_names()[i];
+  EXPECT_LT(ground_truth_error(truth, r.model), 1e-5);
+}
+
+// The expected error of a fisheye covers its whole image circle, beyond 90 degrees from the axis.
+TEST(ExpectedError, FisheyeCoversItsWholeField) {
+  const CameraModel cam = fisheye_185();
+  CalibrationResult r;
+  r.model = cam;
+  r.fixed.assign(cam.num_params(), false);
+  r.covariance = Eigen::MatrixXd::Identity(cam.num_params(), cam.num_params()) * 1e-6;
+  r.residual_variance = 1;
+  const cv::Mat map = expected_error_map(r, 64, 52);
+  int finite = 0, beyond = 0;
+  for (int j = 0; j < map.rows; ++j)
+    for (int i = 0; i < map.cols; ++i) {
+      if (!std::isfinite(map.at<float>(j, i))) continue;
+      ++finite;
+      Eigen::Vector3d ray;
+      ASSERT_TRUE(cam.unproject_ray(
+          Eigen::Vector2d(i * (cam.width() - 1.0) / 63, j * (cam.height() - 1.0) / 51), &ray));
+      beyond += ray.z() < 0;
+    }
+  EXPECT_GT(beyond, 20);
+  EXPECT_GT(finite, map.rows * map.cols / 2);
+  EXPECT_TRUE(std::isfinite(expected_error(r, 40, 23).mean_px));
 }

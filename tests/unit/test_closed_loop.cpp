@@ -28,6 +28,7 @@ struct Case {
   int view_candidates = EngineOptions{}.view_candidates;
   bool view_must_serve_target = EngineOptions{}.view_must_serve_target;
   EngineOptions::ConvergenceMeasure measure = EngineOptions{}.convergence_measure;
+  double max_eps_gt = 0;  // > 0: every converged run's eps_gt must stay below it (pixels)
 };
 
 struct Run {
@@ -113,6 +114,9 @@ void run_case(const Case& c) {
       EXPECT_LT(std::abs(r.params[i] - r.truth.params()[i]), 5 * r.sigma[i] + 1e-12)
           << c.name << " seed " << r.seed << " " << who << " " << r.truth.param_names()[i];
     }
+    if (c.max_eps_gt > 0) {
+      EXPECT_LT(r.eps_gt, c.max_eps_gt) << c.name << " seed " << r.seed << " " << who;
+    }
     std::string held;
     for (const std::string& h : r.held) held += " " + h;
     std::printf("%s seed %d %s: %s, %d keyframes, %llu frames, eps_gt %.3f px%s%s\n", c.name,
@@ -149,6 +153,19 @@ TEST(ClosedLoop, WideAngleRationalCamera) {
                   {1224, 1226, 1230.5, 1020.2, 1.5, 0.3, 0.0005, -0.0003, 0.01, 1.85, 0.6, 0.05}),
       2, 4};
   c.lens = LensModel::kOpenCV8;
+  run_case(c);
+}
+
+TEST(ClosedLoop, Fisheye185Degrees) {
+  // 1280x1024, 185 degrees across the image circle (Kannala-Brandt, cv::fisheye's k1..k4): the
+  // boards go to the rim, beyond 90 degrees from the axis, facing the camera; the start is the
+  // equidistant fit. eps_gt over the whole image circle (docs/pose-selection.md, "Fisheye").
+  Case c{"fisheye-185",
+         CameraModel(1280, 1024, LensModel::kFisheye,
+                     {317.1, 317.8, 641.5, 509.3, 0.008, -0.0012, 0.0002, -0.00001}),
+         2, 4};
+  c.lens = LensModel::kFisheye;
+  c.max_eps_gt = 3.0;
   run_case(c);
 }
 

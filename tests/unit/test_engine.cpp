@@ -634,3 +634,60 @@ TEST(Engine, APriorStartsRefiningAtOnceAndRestores) {
   CalibrationEngine without(rig.truth.size(), plain);
   EXPECT_THROW(without.restore(journal), Error);
 }
+
+// Corners the calibration cannot explain (a misdetection: here 3 corners of the third keyframe
+// moved 6 px) are dropped from their keyframe, named in the calibrated event, and the result is
+// the one without them; a keyframe with more than a quarter of its corners off is refused. The
+// restored journal of the kept corners gives the same calibration bit for bit.
+TEST(Engine, MisdetectedCornersAreDroppedAndAMisdetectedBoardRefused) {
+  RenderOptions ro;
+  ro.noise_sigma = 1.0;
+  Rig rig(ro);
+  EngineOptions o;
+  o.robot = true;
+  CalibrationEngine e(rig.truth.size(), o);
+  present_start_view(e, rig);
+  std::vector<KeyframeRecord> journal;
+  for (int guard = 0; e.keyframes() < 4 && guard < 20; ++guard) {
+    ASSERT_TRUE(e.target());
+    const EngineState before = e.state();
+    if (hold_until_capture(e, rig.camera, e.target()->T_cam_board, true, 12))
+      journal.push_back(e.keyframe_record(e.keyframes() - 1, before));
+  }
+  ASSERT_EQ(journal.size(), 4u);
+  for (const KeyframeRecord& r : journal) ASSERT_GE(r.observation.size(), 20u);
+
+  std::vector<KeyframeRecord> bad = journal;
+  Observation& o3 = bad[2].observation;
+  const size_t n3 = o3.size();
+  for (size_t i : {2, 7, 11}) o3.image_points[i] += cv::Point2d(6.0, -3.0);
+  CalibrationEngine a(rig.truth.size(), o);
+  std::vector<EngineEvent> events;
+  a.set_event_callback([&](const EngineEvent& ev) { events.push_back(ev); });
+  a.restore(bad);
+  EXPECT_EQ(a.keyframe_record(2, EngineState::kRefining).observation.size(), n3 - 3);
+  EXPECT_LT(a.result()->rms_px, 0.2);
+  for (int i = 0; i < 4; ++i) {
+    EXPECT_NEAR(a.result()->model.params()[i], rig.truth.params()[i], 4 * a.result()->std_scaled[i])
+        << rig.truth.param_names()[i];
+  }
+  // The kept corners restore the same calibration, bit for bit.
+  std::vector<KeyframeRecord> kept = bad;
+  for (int k = 0; k < 4; ++k)
+    kept[k].observation = a.keyframe_record(k, kept[k].state_before).observation;
+  CalibrationEngine b(rig.truth.size(), o);
+  b.restore(kept);
+  EXPECT_EQ(b.estimate().params(), a.estimate().params());
+
+  // A board with a third of its corners off is refused, naming why.
+  std::vector<KeyframeRecord> worse = journal;
+  Observation& w3 = worse[2].observation;
+  for (size_t i = 0; i < w3.size(); i += 3) w3.image_points[i] += cv::Point2d(6.0, -3.0);
+  CalibrationEngine c(rig.truth.size(), o);
+  try {
+    c.restore(worse);
+    ADD_FAILURE() << "a misdetected board was accepted";
+  } catch (const Error& err) {
+    EXPECT_NE(std::string(err.what()).find("rejects"), std::string::npos) << err.what();
+  }
+}

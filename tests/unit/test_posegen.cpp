@@ -1,10 +1,13 @@
 // Pose generation rules (paper §3.3, §3.4), one test per rule.
 #include <gtest/gtest.h>
 
-#include "common/error.hpp"
-#include "select/pose_rules.hpp"
+#include <optional>
+#include <random>
+
 #include "board/views.hpp"
+#include "common/error.hpp"
 #include "lens/reference_models.hpp"
+#include "select/pose_rules.hpp"
 
 using namespace posecal;
 
@@ -242,4 +245,53 @@ TEST(PoseGen, OptionsValidate) {
   o.distortion_width_fraction = 0;
   EXPECT_FALSE(o.is_valid(&why));
   EXPECT_THROW(PoseGenerator(Board(), cv::Size(1280, 720), o), Error);
+}
+
+// A fisheye (185 degrees): every rule pose keeps the whole board in view, the distortion poses
+// reach the rim, where the board faces the camera (a board parallel to the image plane is seen
+// edge-on there), and random views reach beyond 90 degrees.
+TEST(PoseGen, FisheyePosesReachTheRimFacingTheCamera) {
+  const Board t;
+  const double f = 512 / (92.5 * kDeg);
+  const CameraModel cam(1280, 1024, LensModel::kFisheye,
+                        {f, f * 1.002, 640.3, 511.2, 0.01, -0.002, 0.0003, -0.00002});
+  PoseGenerator pg(t, cam.size());
+  const double margin =
+      PoseGenOptions{}.border_margin_fraction * std::min(cam.width(), cam.height());
+  const cv::Size2d bs = t.board_size_m();
+  for (int k = 0; k < 2; ++k)
+    EXPECT_TRUE(board_fully_visible(cam, t, pg.initial_pose(k, cam).T_cam_board, margin * 0.99));
+  double widest = 0;
+  for (int i = 0; i < 24; ++i) {
+    const int param = i % 8;
+    const TargetPose p = pg.next_pose(param, cam);
+    EXPECT_TRUE(board_fully_visible(cam, t, p.T_cam_board, margin * 0.99))
+        << "param " << param << " " << target_kind_name(p.kind) << " " << p.note;
+    if (p.kind != TargetKind::kDistortion) continue;
+    const Eigen::Vector3d c = p.T_cam_board.apply(Eigen::Vector3d(bs.width / 2, bs.height / 2, 0));
+    const double off_axis = std::atan2(c.head<2>().norm(), c.z()) / kDeg;
+    widest = std::max(widest, off_axis);
+    // Facing the camera: the board's normal along the line of sight.
+    const Eigen::Vector3d normal = p.T_cam_board.R().col(2);
+    EXPECT_GT(normal.dot(c.normalized()), std::cos(1 * kDeg)) << off_axis;
+  }
+  EXPECT_GT(widest, 60.0);
+  std::printf("fisheye: distortion poses up to %.1f degrees from the axis\n", widest);
+
+  std::mt19937_64 rng(5);
+  ViewSampling vs;
+  const ViewSampler sampler(cam, t, vs);
+  int drawn = 0;
+  double widest_view = 0;
+  for (int i = 0; i < 400; ++i) {
+    const std::optional<Pose> p = sampler.draw(rng);
+    if (!p) continue;
+    ++drawn;
+    const Eigen::Vector3d c = p->apply(Eigen::Vector3d(bs.width / 2, bs.height / 2, 0));
+    widest_view = std::max(widest_view, std::atan2(c.head<2>().norm(), c.z()) / kDeg);
+  }
+  EXPECT_GT(drawn, 300);
+  EXPECT_GT(widest_view, 55.0);
+  std::printf("fisheye: %d random views, centres up to %.1f degrees from the axis\n", drawn,
+              widest_view);
 }
