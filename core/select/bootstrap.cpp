@@ -86,7 +86,23 @@ bool CalibrationEngine::Impl::fit_bootstrap(const std::vector<Observation>& view
   co.zero_distortion = true;
   co.fixed.clear();
   try {
-    const CalibrationResult r = calibrate(views, size, co);
+    CalibrationResult r = calibrate(views, size, co);
+    if (opt.auto_lens_model) {
+      // The automatic lens model's family is chosen here, where the first target is drawn with
+      // it: the pinhole or the equidistant projection, whichever explains the views better (a
+      // board seen through a fisheye is far from any pinhole image, and back).
+      CalibrationOptions other = co;
+      other.lens_model = is_ray_model(co.lens_model) ? LensModel::kOpenCV5 : LensModel::kFisheye;
+      try {
+        CalibrationResult ro = calibrate(views, size, other);
+        if (ro.rms_px < r.rms_px) {
+          r = std::move(ro);
+          co = other;
+        }
+      } catch (const Error&) {
+        // (that projection cannot explain them)
+      }
+    }
     // Uncertainty at the measured noise level, floored at 0.1 px so that a perfect fit of a
     // weak view cannot pass: telephoto lenses see little perspective, so at 1 px noise even a
     // 60 degree tilt leaves f 5% uncertain, while their real corner noise is ~0.05 px.
@@ -109,6 +125,7 @@ bool CalibrationEngine::Impl::fit_bootstrap(const std::vector<Observation>& view
     // determines f best. A weak view fits any f with a low residual (docs/pose-selection.md).
     if (rel_std < best_bootstrap_rms) {
       best_bootstrap_rms = rel_std;
+      if (co.lens_model != opt.calibration.lens_model) move_to_lens_model(co.lens_model);
       estimate = r.model;
       have_bootstrap = true;
       bootstrap_hint.clear();

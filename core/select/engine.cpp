@@ -86,6 +86,8 @@ bool EngineOptions::is_valid(std::string* error) const {
     return fail(std::string("accuracy_px cannot be honoured by method \"") +
                 (method == Method::kPaper ? "paper" : "reference-std") +
                 "\", which stops on the ratio test; use method \"posecal\"");
+  if (auto_lens_model && calibration.prior)
+    return fail("lens_model auto cannot be used with a prior: the prior is of one lens model");
   if (bootstrap_min_corners < 0) return fail("bootstrap_min_corners must be >= 0");
   if (!(bootstrap_max_relative_std > 0 && bootstrap_max_relative_std <= 1)) {
     return fail("bootstrap_max_relative_std must be in (0, 1]");
@@ -408,9 +410,10 @@ void CalibrationEngine::Impl::after_calibration() {
 // confuses corners where the board is strongly foreshortened or distorted (seen: a 70-degree tilt
 // on a 185-degree fisheye, 9 of 40 corners 1-10 px off, eps_gt 1.9 px instead of 0.1) would
 // otherwise pull every parameter. Gaussian noise alone exceeds 6 sigma once in 10^8 corners.
-// Indices into keyframes.back(), ascending; empty if none.
-std::vector<size_t> CalibrationEngine::Impl::outlier_corners(
-    const CalibrationResult& r, const std::vector<Observation>& frames) const {
+// Indices into frames[frame], ascending; empty if none.
+std::vector<size_t> CalibrationEngine::Impl::outlier_corners(const CalibrationResult& r,
+                                                             const std::vector<Observation>& frames,
+                                                             size_t frame) const {
   constexpr double kOutlierFloorPx = 1.0, kOutlierSigmas = 6.0;
   if (frames.size() < 2 || r.poses.size() != frames.size()) return {};
   std::vector<double> all, last;
@@ -420,7 +423,7 @@ std::vector<size_t> CalibrationEngine::Impl::outlier_corners(
     for (size_t i = 0; i < proj.size(); ++i) {
       const double e = cv::norm(proj[i] - frames[f].image_points[i]);
       all.push_back(std::isfinite(e) ? e : std::numeric_limits<double>::infinity());
-      if (f + 1 == frames.size()) last.push_back(all.back());
+      if (f == frame) last.push_back(all.back());
     }
   }
   std::nth_element(all.begin(), all.begin() + static_cast<long>(all.size() / 2), all.end());
@@ -466,37 +469,52 @@ bool CalibrationEngine::Impl::recalibrate() {
     now = solve();
     // The new keyframe's corners the calibration cannot explain are dropped and the keyframe
     // solved again from the same start, until none is left (so a journal's replay of the kept
-    // corners gives the same result); a keyframe with many of them is refused.
-    const size_t captured = keyframes.back().size();
+    // corners gives the same result); a keyframe with many of them is refused. At the first
+    // calibration both keyframes are new: the first one's are dropped too (seen: a fisheye's
+    // first keyframe with its rim corners 1.5 px off, kept to the end), never refused.
+    const size_t last = keyframes.size() - 1, first_checked = result ? last : 0;
+    std::vector<size_t> captured;
+    for (size_t f = first_checked; f <= last; ++f) captured.push_back(keyframes[f].size());
     for (int round = 0;; ++round) {
-      const std::vector<size_t> outliers = outlier_corners(now, keyframes);
-      if (outliers.empty()) break;
-      Observation& o = keyframes.back();
-      const size_t total = o.size();
-      if (round == 8 || (captured - total + outliers.size()) * 4 > captured) {
-        return reject(std::to_string(captured - total + outliers.size()) + " of its " +
-                      std::to_string(captured) +
-                      " corners disagree with the calibration of the others (a misdetected board)");
-      }
-      Observation kept;
-      for (size_t i = 0, k = 0; i < total; ++i) {
-        if (k < outliers.size() && outliers[k] == i) {
-          ++k;
-          continue;
+      bool any = false;
+      for (size_t f = first_checked; f <= last; ++f) {
+        const std::vector<size_t> outliers = outlier_corners(now, keyframes, f);
+        if (outliers.empty()) continue;
+        any = true;
+        Observation& o = keyframes[f];
+        const size_t total = o.size(), had = captured[f - first_checked];
+        if (f == last && (round == 8 || (had - total + outliers.size()) * 4 > had)) {
+          return reject(
+              std::to_string(had - total + outliers.size()) + " of its " + std::to_string(had) +
+              " corners disagree with the calibration of the others (a misdetected board)");
         }
-        kept.ids.push_back(o.ids[i]);
-        kept.image_points.push_back(o.image_points[i]);
-        kept.board_points.push_back(o.board_points[i]);
+        if (round == 8 || total - outliers.size() < 4) continue;  // (an earlier keyframe stays)
+        Observation kept;
+        for (size_t i = 0, k = 0; i < total; ++i) {
+          if (k < outliers.size() && outliers[k] == i) {
+            ++k;
+            continue;
+          }
+          kept.ids.push_back(o.ids[i]);
+          kept.image_points.push_back(o.image_points[i]);
+          kept.board_points.push_back(o.board_points[i]);
+        }
+        o = std::move(kept);
       }
-      o = std::move(kept);
+      if (!any || round == 8) break;
       now = solve();
-      dropped = "; dropped " + std::to_string(captured - o.size()) + " of the keyframe's " +
-                std::to_string(captured) +
-                " corners that disagree with the calibration (misdetected)";
+    }
+    for (size_t f = first_checked; f <= last; ++f) {
+      const size_t had = captured[f - first_checked];
+      if (keyframes[f].size() == had) continue;
+      dropped += "; dropped " + std::to_string(had - keyframes[f].size()) + " of keyframe " +
+                 std::to_string(f + 1) + "'s " + std::to_string(had) +
+                 " corners that disagree with the calibration (misdetected)";
     }
   } catch (const Error& e) {
     return reject(e.what());
   }
+  const std::string lens_move = opt.auto_lens_model ? choose_lens_model(&now) : "";
   const int tgt = keyframe_target.back();
   if (tgt >= 0) {
     ++param_targeted[tgt];
@@ -508,7 +526,7 @@ bool CalibrationEngine::Impl::recalibrate() {
   expected = posecal::expected_error(now);
   EngineEvent ke{EngineEvent::Kind::kCalibrated};
   ke.message = "rms " + std::to_string(now.rms_px) + " px, expected error " +
-               std::to_string(expected->rms_px) + " px" + dropped;
+               std::to_string(expected->rms_px) + " px" + dropped + lens_move;
   if (!now.held.empty()) {
     std::string held;
     for (const std::string& n : now.held) {
@@ -520,7 +538,9 @@ bool CalibrationEngine::Impl::recalibrate() {
                   (now.held.size() == 1 ? "it" : "them") + ")";
   }
   emit(ke);
-  if (prev && tgt >= 0) update_convergence(*prev, now, tgt);
+  // (Not across a change of lens model: the variances are of different parameters.)
+  if (prev && tgt >= 0 && prev->model.lens_model() == now.model.lens_model())
+    update_convergence(*prev, now, tgt);
   const std::vector<std::string>& names = estimate.param_names();
   for (int i = 0; i < estimate.num_params(); ++i) {
     if (now.fixed[i]) {
@@ -583,6 +603,9 @@ const std::optional<TargetPose>& CalibrationEngine::target() const { return impl
 int CalibrationEngine::target_parameter() const { return impl_->target_param; }
 const CameraModel& CalibrationEngine::estimate() const { return impl_->estimate; }
 const CalibrationResult* CalibrationEngine::result() const { return impl_->result ? &*impl_->result : nullptr; }
+const std::vector<LensCandidate>& CalibrationEngine::lens_candidates() const {
+  return impl_->lens_evidence;
+}
 const ExpectedError* CalibrationEngine::expected_error() const {
   return impl_->expected ? &*impl_->expected : nullptr;
 }

@@ -129,7 +129,25 @@ struct EngineOptions {
   // frame rates differ between cameras (and are unknown for fed frames and image folders).
   double board_timeout_s = 120;
   PoseGenOptions posegen;
+  // calibration.lens_model is the lens model calibrated. With auto_lens_model it is only the
+  // first: after every keyframe's calibration the engine also fits each model of the lens table
+  // to the keyframes and moves to the one with the lowest Bayesian information criterion once it
+  // beats the current one by kLensSwitchMargin (kFamilySwitchMargin between the pinhole and the
+  // fisheye family, which the bootstrap chooses) (docs/pose-selection.md, "Automatic lens model");
+  // the targets then serve the model chosen. lens_candidates() gives the evidence.
   CalibrationOptions calibration;
+  bool auto_lens_model = false;
+  // The session key "lens_model": a model of the table, or "auto" (auto_lens_model).
+  struct LensModelKey {
+    LensModel& model;
+    bool& automatic;
+  };
+  struct ConstLensModelKey {
+    const LensModel& model;
+    const bool& automatic;
+  };
+  LensModelKey lens_model_key() { return {calibration.lens_model, auto_lens_model}; }
+  ConstLensModelKey lens_model_key() const { return {calibration.lens_model, auto_lens_model}; }
   DetectorOptions detector;
   // While the operator moves the board to a target, search it around where it was in the last
   // frame, on a shrunk copy when its markers are large (core/board/tracking.hpp): a third of the
@@ -139,6 +157,27 @@ struct EngineOptions {
   bool track_board = true;
   bool is_valid(std::string* error) const;
 };
+
+// One lens model's fit to the keyframes, the evidence of the automatic model choice
+// (EngineOptions::auto_lens_model).
+struct LensCandidate {
+  LensModel model = LensModel::kOpenCV5;
+  bool fitted = false;
+  std::string failure;  // why it could not be fitted (!fitted)
+  double rms_px = 0;
+  int free_intrinsics = 0;  // held and fixed ones excluded
+  int residuals = 0;        // 2 per corner
+  // Bayesian information criterion of the corners, N ln(SSR / N) + k ln N with N residuals and
+  // k free intrinsics (the board poses are common to every candidate and left out): lower is
+  // better; a difference above 10 is very strong evidence (Kass and Raftery 1995).
+  double bic = 0;
+  double expected_error_px = -1;
+  std::vector<std::string> held;
+};
+// The BIC lead a lens model needs over the current one before the engine moves to it: within a
+// family (OpenCV's models, or the fisheye), and across (the bootstrap chose the family).
+inline constexpr double kLensSwitchMargin = 10.0;
+inline constexpr double kFamilySwitchMargin = 100.0;
 
 struct FrameReport {
   uint64_t frame_index = 0;
@@ -239,6 +278,9 @@ class CalibrationEngine {
   const CalibrationResult* result() const;
   // Its expected projection error (calib/expected_error.hpp; nullptr before the second keyframe).
   const ExpectedError* expected_error() const;
+  // With EngineOptions::auto_lens_model: every table model's fit at the last calibration, in
+  // table order (empty before the first calibration and without auto_lens_model).
+  const std::vector<LensCandidate>& lens_candidates() const;
   std::vector<ParameterStatus> parameters() const;
   const std::vector<Observation>& keyframe_observations() const;
   // The record of keyframe i (0-based) as the engine stands now: call it right after the

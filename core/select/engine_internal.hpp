@@ -6,6 +6,7 @@
 //   target_choice.cpp MaxIOD and the choice of the next target among rule poses and views
 //   guidance.cpp      what the operator is told, and what a guided camera is given
 //   overlay.cpp       the drawing of the target over the camera image
+//   lens_choice.cpp   the automatic lens model (EngineOptions::auto_lens_model)
 #pragma once
 
 #include <limits>
@@ -98,9 +99,19 @@ struct CalibrationEngine::Impl {
   // Recalibrates with the keyframes; false (keyframe dropped, event emitted) if it is rejected.
   bool recalibrate();
   std::vector<size_t> outlier_corners(const CalibrationResult& r,
-                                      const std::vector<Observation>& frames) const;
+                                      const std::vector<Observation>& frames, size_t frame) const;
   void start_from_prior();
   bool scoring() const { return opt.pose_candidates > 1 || opt.prospective_convergence; }
+
+  // --- lens_choice.cpp: EngineOptions::auto_lens_model ---
+  std::vector<LensCandidate> lens_evidence;                 // of the last calibration
+  std::vector<std::optional<CalibrationResult>> lens_fits;  // per table model, its last fit
+  // Fits every table model to the keyframes beside *now (the current model's) and moves to the
+  // one with the lowest BIC if it leads by kLensSwitchMargin: *now becomes its fit, the
+  // per-parameter state follows by name. Returns the event's text ("" if it stays).
+  std::string choose_lens_model(CalibrationResult* now);
+  // Makes `to` the lens model calibrated; the per-parameter state follows by name.
+  void move_to_lens_model(LensModel to);
 
   // --- bootstrap.cpp ---
   int bootstrap_min_corners() const;

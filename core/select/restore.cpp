@@ -9,9 +9,17 @@ namespace posecal {
 
 namespace {
 
+// num_params < 0: any model of the lens table (EngineOptions::auto_lens_model).
 void check_record(const KeyframeRecord& r, size_t index, int num_params, bool with_prior) {
   const std::string where = "journal keyframe " + std::to_string(index + 1) + ": ";
   auto bad = [&](const std::string& why) { throw Error(ErrorCode::kInvalidArgument, where + why); };
+  if (num_params < 0) {
+    num_params = static_cast<int>(r.estimate_after.size());
+    bool known = false;
+    for (const LensModel m : lens_models()) known = known || num_intrinsics(m) == num_params;
+    if (!known)
+      bad("it has " + std::to_string(num_params) + " intrinsics, no lens model has as many");
+  }
   if (static_cast<int>(r.estimate_after.size()) != num_params ||
       static_cast<int>(r.converged_after.size()) != num_params) {
     bad("it has " + std::to_string(r.estimate_after.size()) +
@@ -59,7 +67,7 @@ bool CalibrationEngine::restore(const std::vector<KeyframeRecord>& records) {
   if (s.frame_index != 0 || !s.keyframes.empty()) {
     throw Error(ErrorCode::kState, "engine: keyframes can be restored only before the first frame");
   }
-  const int n = s.estimate.num_params();
+  const int n = s.opt.auto_lens_model ? -1 : s.estimate.num_params();
   for (size_t k = 0; k < records.size(); ++k) check_record(records[k], k, n, s.prior.has_value());
   if (records.empty()) return true;
   // No events while rebuilding: the host saw them when the keyframes were captured.
@@ -76,8 +84,16 @@ bool CalibrationEngine::restore(const std::vector<KeyframeRecord>& records) {
     s.keyframe_target.push_back(r.state_before == EngineState::kRefining ? r.target_param : -1);
     if (k == 0 &&
         !s.prior) {  // the first keyframe is not calibrated alone: its estimate is the bootstrap's
+      // (An automatic lens model's bootstrap may have chosen the fisheye: the count says which.)
+      if (s.opt.auto_lens_model) {
+        for (const LensModel m : lens_models()) {
+          if (num_intrinsics(m) == static_cast<int>(r.estimate_after.size()) &&
+              m != s.opt.calibration.lens_model)
+            s.move_to_lens_model(m);
+        }
+      }
       s.estimate =
-          CameraModel(s.size.width, s.size.height, s.estimate.lens_model(), r.estimate_after);
+          CameraModel(s.size.width, s.size.height, s.opt.calibration.lens_model, r.estimate_after);
       s.have_bootstrap = true;
       continue;
     }
@@ -89,7 +105,9 @@ bool CalibrationEngine::restore(const std::vector<KeyframeRecord>& records) {
   }
   const KeyframeRecord& last = records.back();
   const bool identical = s.estimate.params() == last.estimate_after;
-  s.param_converged = last.converged_after;
+  // (An automatic lens model the replay did not reach again keeps the replay's own state.)
+  if (last.converged_after.size() == s.param_converged.size())
+    s.param_converged = last.converged_after;
   s.state = last.state_after;
   s.failure = last.failure;
   switch (last.state_after) {

@@ -109,6 +109,21 @@ void set_Choice(const char* key, double lo, double hi, const char* choices, Engi
 }
 SessionKeyValue get_Choice(const char* choices, const EngineOptions& m) { return get_Choice(choices, m.method); }
 
+// "lens_model": a model of the lens table (the choices in table order), or "auto" (last).
+void set_Choice(const char* key, double lo, double hi, const char* choices,
+                EngineOptions::LensModelKey m, const SessionKeyValue& v) {
+  const std::string& name = value_as<std::string>(key, v, choices_text(choices));
+  m.automatic = name == "auto";
+  if (m.automatic) {
+    m.model = LensModel::kOpenCV5;  // the first model; the engine moves from it
+  } else {
+    set_Choice(key, lo, hi, choices, m.model, v);
+  }
+}
+SessionKeyValue get_Choice(const char* choices, EngineOptions::ConstLensModelKey m) {
+  return m.automatic ? std::string("auto") : get_Choice(choices, m.model);
+}
+
 void set_Text(const char* key, double, double, const char*, BoardSpec& m, const SessionKeyValue& v) {
   m = BoardSpec::parse(value_as<std::string>(key, v, "a string"));
 }

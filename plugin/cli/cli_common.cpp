@@ -195,12 +195,28 @@ Json summary(const Json& result, double wall_ms) {
   for (const char* k : {"expected_error_px", "expected_error_p90_px", "expected_error_unit_px", "expected_error_limited_by"}) {
     j[k] = result.value(k, Json());
   }
-  for (const char* k : {"eps_test",          "eps_gt",       "eps_gt_aligned", "ground_truth",
-                        "operator_attempts", "failure",      "journal",        "resumed_keyframes",
-                        "resume_identical",  "journal_note", "seconds",        "verdict",
-                        "verdict_reasons",   "spec",         "records",        "run_id",
-                        "records_note",      "fleet",        "prior",          "held",
-                        "held_reason"}) {
+  for (const char* k : {"eps_test",
+                        "eps_gt",
+                        "eps_gt_aligned",
+                        "ground_truth",
+                        "operator_attempts",
+                        "failure",
+                        "journal",
+                        "resumed_keyframes",
+                        "resume_identical",
+                        "journal_note",
+                        "seconds",
+                        "verdict",
+                        "verdict_reasons",
+                        "spec",
+                        "records",
+                        "run_id",
+                        "records_note",
+                        "fleet",
+                        "prior",
+                        "held",
+                        "held_reason",
+                        "lens_model_choice"}) {
     if (result.contains(k)) j[k] = result[k];
   }
   j["camera"] = result.value("camera", Json());

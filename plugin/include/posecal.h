@@ -329,7 +329,9 @@ typedef struct posecal_image {
  *   "lens_model" ("opencv5"; "opencv8", "opencv12", "opencv14": OpenCV's rational,
  *   thin-prism and tilted-sensor models, coefficients k1 k2 p1 p2 k3 k4 k5 k6 s1 s2 s3 s4
  *   tau_x tau_y in OpenCV's order, so a result drops into cv::undistort; "fisheye": the
- *   Kannala-Brandt model with cv::fisheye's k1..k4),
+ *   Kannala-Brandt model with cv::fisheye's k1..k4; "auto": every one of them fitted after
+ *   each keyframe and the one with the lowest Bayesian information criterion calibrated, the
+ *   result's "lens_model_choice" naming it with every candidate's figures),
  *   "fixed" ([]: names among the lens model's parameters (fx fy cx cy k1 k2 p1 p2 k3 ...) held at
  * their initial value, 0 for distortion, e.g. ["k2", "k3"] for a narrow lens; they count as
  * converged), "convergence_measure" ("std", the reference implementation's ratio test, the default;

@@ -71,6 +71,33 @@ nlohmann::json calibration_json(const CalibrationResult& r) {
   return j;
 }
 
+nlohmann::json lens_choice_json(const CalibrationEngine& engine) {
+  nlohmann::json cands = nlohmann::json::array();
+  for (const LensCandidate& c : engine.lens_candidates()) {
+    nlohmann::json j{{"model", lens_model_name(c.model)}, {"fitted", c.fitted}};
+    if (!c.fitted) {
+      j["failure"] = c.failure;
+    } else {
+      j["rms"] = number(c.rms_px);
+      j["free_intrinsics"] = c.free_intrinsics;
+      j["residuals"] = c.residuals;
+      j["bic"] = number(c.bic);
+      j["expected_error_px"] = number(c.expected_error_px);
+      j["held"] = c.held;
+    }
+    cands.push_back(j);
+  }
+  return {{"chosen", lens_model_name(engine.estimate().lens_model())},
+          {"criterion",
+           "BIC = N ln(SSR/N) + k ln N over the keyframes' corners (N residuals, k free "
+           "intrinsics); the engine moves to a model that leads the current one by more than " +
+               std::to_string(static_cast<int>(kLensSwitchMargin)) + " (" +
+               std::to_string(static_cast<int>(kFamilySwitchMargin)) +
+               " between the pinhole and the fisheye family, which the bootstrap chooses by the "
+               "better fit)"},
+          {"candidates", cands}};
+}
+
 void save_calibration(const std::string& path, const CalibrationResult& r, const char* format,
                       CalibrationFileExtras extras) {
   std::optional<ModelFormat> f;

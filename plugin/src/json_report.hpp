@@ -9,6 +9,7 @@
 #include "calib/calibration.hpp"
 #include "device/camera.hpp"
 #include "io/model_file.hpp"
+#include "select/engine.hpp"
 
 namespace posecal::abi {
 
@@ -16,6 +17,9 @@ nlohmann::json device_json(const DeviceInfo& d);
 // Values, "std" (scaled by the residual variance: the honest sigma), "std_unit" (Sigma_p = I,
 // paper eq. 5), index of dispersion, "rms", per-frame RMS, intrinsics covariance (scaled).
 nlohmann::json calibration_json(const CalibrationResult& r);
+// The automatic lens model's evidence (CalibrationEngine::lens_candidates): the model chosen,
+// the criterion and every candidate's figures.
+nlohmann::json lens_choice_json(const CalibrationEngine& engine);
 // Writes the result as a camera-model file (io/model_file.hpp) in `format` (a format name; NULL
 // or "": by the extension), with the figures of the result: nr_of_frames,
 // avg_reprojection_error, the per-parameter standard deviations, the intrinsics covariance and

@@ -468,6 +468,7 @@ Json result_json(posecal_session* session) {
   Json conv = Json::object();
   for (const auto& p : eng.parameters()) conv[p.name] = p.converged;
   j["parameter_converged"] = conv;
+  if (!eng.lens_candidates().empty()) j["lens_model_choice"] = abi::lens_choice_json(eng);
   if (SimCamera* sim = as_sim_camera(&session->session->camera())) {
     if (session->test_set.empty()) session->test_set = abi::sim_test_set(sim->sim_options());
     if (session->evaluated_keyframes != eng.keyframes()) {

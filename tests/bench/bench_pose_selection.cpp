@@ -226,6 +226,7 @@ struct Run {
   // sensor is a rotation plus a principal-point shift to first order, which plain eps_gt counts.
   double eps_gt_aligned = NAN;
   double eps_res = NAN;  // the calibration's residual RMS
+  std::string lens_model;     // the model calibrated (config "auto": the one chosen)
   int bootstrap_frames = -1;  // frames until the engine had a first target (-1: never)
   // --compactness: keyframes the paper's greedy test keeps for the same eps_test (§5.3).
   int compact_kept = -1;
@@ -274,6 +275,12 @@ int g_random_match = 0;
 // Engine configurations compared in docs/benchmarks.md.
 void apply_named_config(const std::string& config, EngineOptions* eo) {
   if (config == "default") return;
+  if (config == "auto") {
+    // The automatic lens model (issue 14): from opencv5, moved by the BIC (lens_choice.cpp).
+    eo->auto_lens_model = true;
+    eo->calibration.lens_model = LensModel::kOpenCV5;
+    return;
+  }
   if (config == "prospective" || config == "prospective-std") {
     // Convergence decided only by the predicted reduction of the best next pose.
     eo->measured_convergence = false;
@@ -305,7 +312,9 @@ void apply_named_config(const std::string& config, EngineOptions* eo) {
   if (config == "paper") return eo->set_method(EngineOptions::Method::kPaper);
   if (config == "std") return eo->set_method(EngineOptions::Method::kReferenceStd);
   throw Error(ErrorCode::kInvalidArgument,
-              "unknown --config '" + config + "' (default, std-views, default-std, variance, variance-views, prospective, prospective-std, paper, std)");
+              "unknown --config '" + config +
+                  "' (default, auto, std-views, default-std, variance, variance-views, "
+                  "prospective, prospective-std, paper, std)");
 }
 
 // The configuration, then the flags that override any configuration.
@@ -323,6 +332,7 @@ void apply_config(const std::string& config, EngineOptions* eo) {
 }
 
 void split_eps_gt(const CameraModel& truth, const CameraModel& estimate, Run* r) {
+  if (truth.lens_model() != estimate.lens_model()) return;  // (no split across models)
   CameraModel k_only = estimate, d_only = estimate;
   for (int i = 0; i < truth.num_params(); ++i) {
     if (i < 4) d_only.params()[i] = truth.params()[i];
@@ -390,6 +400,7 @@ Run closed_loop(const World& world, const CameraModel& truth, const BoardSpec& t
   r.converged = eng.converged();
   r.keyframes = eng.keyframes();
   r.frames = static_cast<int>(session.frames_processed());
+  r.lens_model = lens_model_name(eng.estimate().lens_model());
   if (eng.result()) {
     const SimEvaluation ev = evaluate_synthetic(eng.estimate(), truth, test);
     r.eps_test = ev.eps_test;
@@ -885,7 +896,7 @@ void print_paired(const std::vector<CameraRuns>& runs, const Options& o) {
 // Against the right model's OpenCV calibration (issue 14): eps_gt aligned, the ratio to 20 random
 // views; a fisheye world's eps_gt within 80 degrees of the axis, where cv::fisheye has data.
 void print_against_right_model(const std::vector<CameraRuns>& runs, size_t c,
-                               const std::string& config) {
+                               const std::string& config, const std::string& first) {
   std::vector<double> ours, r10, r20;
   for (const CameraRuns& r : runs) {
     if (std::isfinite(r.persons[c].eps_gt_inner)) ours.push_back(r.persons[c].eps_gt_inner);
@@ -910,6 +921,24 @@ void print_against_right_model(const std::vector<CameraRuns>& runs, size_t c,
   if (!ratio20.empty())
     std::printf("eps_gt / random-20 (edge grid, per camera), %s: %s (p90 %.2f)\n", config.c_str(),
                 median_ci(ratio20, "%.2f").c_str(), percentile(ratio20, 0.9));
+  std::map<std::string, int> chosen;
+  for (const CameraRuns& r : runs) ++chosen[r.persons[c].lens_model];
+  std::printf("lens model calibrated, %s:", config.c_str());
+  for (const auto& [name, count] : chosen) std::printf(" %s x%d", name.c_str(), count);
+  std::printf("\n");
+  if (c > 0) {  // paired with the first configuration, camera by camera
+    const auto print_paired = [&](double Run::*eps, const char* label) {
+      std::vector<double> paired;
+      for (const CameraRuns& r : runs)
+        if (r.persons[c].converged && r.persons[0].converged && r.persons[0].*eps > 0)
+          paired.push_back(r.persons[c].*eps / r.persons[0].*eps);
+      if (!paired.empty())
+        std::printf("%s %s / %s (paired per camera): %s (p90 %.2f)\n", label, config.c_str(),
+                    first.c_str(), median_ci(paired, "%.2f").c_str(), percentile(paired, 0.9));
+    };
+    print_paired(&Run::eps_gt_edges, "eps_gt (edge grid)");
+    print_paired(&Run::eps_gt_aligned, "eps_gt aligned");
+  }
   if (ours.empty()) return;
   std::printf(
       "eps_gt within 80 degrees of the axis (where cv::fisheye has data), %s: %s px; OpenCV 10 "
@@ -1038,7 +1067,8 @@ WorldSummary print_world(const World& w, const std::vector<CameraRuns>& runs, co
                 median_ci(eps, "%.3f").c_str());
   }
   for (size_t c = 0; c < o.configs.size(); ++c) print_honesty(runs, c, o.configs[c]);
-  for (size_t c = 0; c < o.configs.size(); ++c) print_against_right_model(runs, c, o.configs[c]);
+  for (size_t c = 0; c < o.configs.size(); ++c)
+    print_against_right_model(runs, c, o.configs[c], o.configs.front());
   if (g_random_match > 0) print_random_match(runs, o.configs.front());
   std::map<std::string, AttemptStats> total;
   for (const auto& r : runs)

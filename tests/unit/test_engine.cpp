@@ -636,9 +636,10 @@ TEST(Engine, APriorStartsRefiningAtOnceAndRestores) {
 }
 
 // Corners the calibration cannot explain (a misdetection: here 3 corners of the third keyframe
-// moved 6 px) are dropped from their keyframe, named in the calibrated event, and the result is
-// the one without them; a keyframe with more than a quarter of its corners off is refused. The
-// restored journal of the kept corners gives the same calibration bit for bit.
+// moved 6 px, or 2 of the first, judged at the first calibration) are dropped from their keyframe,
+// named in the calibrated event, and the result is the one without them; a keyframe with more than
+// a quarter of its corners off is refused. The restored journal of the kept corners gives the same
+// calibration bit for bit.
 TEST(Engine, MisdetectedCornersAreDroppedAndAMisdetectedBoardRefused) {
   RenderOptions ro;
   ro.noise_sigma = 1.0;
@@ -678,6 +679,15 @@ TEST(Engine, MisdetectedCornersAreDroppedAndAMisdetectedBoardRefused) {
   CalibrationEngine b(rig.truth.size(), o);
   b.restore(kept);
   EXPECT_EQ(b.estimate().params(), a.estimate().params());
+
+  // At the first calibration both keyframes are new: the first one's misdetected corners go too.
+  std::vector<KeyframeRecord> first = journal;
+  const size_t n0 = first[0].observation.size();
+  for (size_t i : {4, 9}) first[0].observation.image_points[i] += cv::Point2d(-5.0, 4.0);
+  CalibrationEngine d(rig.truth.size(), o);
+  d.restore(first);
+  EXPECT_EQ(d.keyframe_record(0, EngineState::kInitialPose1).observation.size(), n0 - 2);
+  EXPECT_LT(d.result()->rms_px, 0.2);
 
   // A board with a third of its corners off is refused, naming why.
   std::vector<KeyframeRecord> worse = journal;

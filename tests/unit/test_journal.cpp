@@ -178,6 +178,43 @@ TEST(Journal, AResumedSessionRecomputesTheSameCalibrationAndConverges) {
   EXPECT_EQ(j.keyframes[keyframes_before - 1].estimate_after, params_before);
 }
 
+// lens_model "auto": the bootstrap moves to the fisheye and the journal's keyframes carry its
+// eight intrinsics; a resumed session must come back to the same model and calibration.
+TEST(Journal, AnAutomaticLensModelResumesWithTheModelItChose) {
+  const fs::path p = fresh("resume_auto");
+  SimCameraOptions so;
+  so.truth = CameraModel(1280, 1024, LensModel::kFisheye,
+                         {317.1, 317.8, 641.5, 509.3, 0.008, -0.0012, 0.0002, -0.00001});
+  so.seed = 3;
+  so.render.seed = 3;
+  EngineOptions eo;
+  eo.target_timeout_frames = 36;
+  eo.auto_lens_model = true;
+  std::vector<double> params_before;
+  {
+    CalibrationSession s(make_sim_camera(so), eo);
+    s.open_journal(p.string(), "{}", false, true);
+    for (int f = 0; f < 2000 && !s.finished() && (!s.has_engine() || s.engine().keyframes() < 3);
+         ++f) {
+      s.step(1000);
+    }
+    ASSERT_EQ(s.engine().keyframes(), 3);
+    ASSERT_EQ(s.engine().estimate().lens_model(), LensModel::kFisheye);
+    ASSERT_EQ(s.engine().lens_candidates().size(), lens_models().size());
+    params_before = s.engine().result()->model.params();
+  }
+  CalibrationSession s(make_sim_camera(so), eo);
+  s.open_journal(p.string(), "{}", false, true);
+  EXPECT_EQ(s.journal_status().resumed_keyframes, 3);
+  s.step(1000);
+  ASSERT_TRUE(s.has_engine());
+  ASSERT_TRUE(s.journal_status().identical.has_value());
+  EXPECT_TRUE(*s.journal_status().identical);
+  EXPECT_EQ(s.engine().estimate().lens_model(), LensModel::kFisheye);
+  ASSERT_NE(s.engine().result(), nullptr);
+  EXPECT_EQ(s.engine().result()->model.params(), params_before);
+}
+
 TEST(Journal, AnotherCamerasJournalIsRefusedUnlessResumeIsOff) {
   const fs::path p = fresh("other_camera");
   {

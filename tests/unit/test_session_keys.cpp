@@ -162,7 +162,7 @@ TEST(SessionKeys, ChoicesRoundTrip) {
 }
 
 // "lens_model"'s choices are the lens-model table, in its order (the member is the LensModel
-// enum, set to the choice's index).
+// enum, set to the choice's index), then "auto" (EngineOptions::auto_lens_model).
 TEST(SessionKeys, LensModelChoicesAreTheLensTable) {
   std::string table;
   for (const LensModel m : lens_models()) {
@@ -173,13 +173,28 @@ TEST(SessionKeys, LensModelChoicesAreTheLensTable) {
   for (const SessionKeyInfo& k : session_keys()) {
     if (std::string(k.key) != "lens_model") continue;
     found = true;
-    EXPECT_EQ(std::string(k.choices), table);
+    EXPECT_EQ(std::string(k.choices), table + "|auto");
   }
   EXPECT_TRUE(found);
   SessionOptions o;
   set_session_key(&o, "lens_model", std::string("opencv14"));
   EXPECT_EQ(o.engine.calibration.lens_model, LensModel::kOpenCV14);
+  EXPECT_FALSE(o.engine.auto_lens_model);
   EXPECT_THROW(set_session_key(&o, "lens_model", std::string("fisheye9")), Error);
+  set_session_key(&o, "lens_model", std::string("auto"));
+  EXPECT_TRUE(o.engine.auto_lens_model);
+  EXPECT_EQ(o.engine.calibration.lens_model, LensModel::kOpenCV5);  // where it starts
+  EXPECT_TRUE(get_session_key(o, "lens_model") == SessionKeyValue(std::string("auto")));
+  set_session_key(&o, "lens_model", std::string("fisheye"));
+  EXPECT_FALSE(o.engine.auto_lens_model);
+  EXPECT_TRUE(get_session_key(o, "lens_model") == SessionKeyValue(std::string("fisheye")));
+  // A prior is of one lens model: auto cannot move away from it.
+  EngineOptions eo;
+  eo.auto_lens_model = true;
+  eo.calibration.prior = IntrinsicsPrior{};
+  std::string why;
+  EXPECT_FALSE(eo.is_valid(&why));
+  EXPECT_NE(why.find("prior"), std::string::npos) << why;
 }
 
 TEST(SessionKeys, EveryKeyIsDocumentedWhereHostsLook) {
