@@ -69,6 +69,9 @@ struct Detection {
   std::vector<cv::Point2d> image_points;  // subpixel, OpenCV pixel convention
   std::vector<cv::Point3d> board_points;  // matching board coordinates (z = 0)
   int markers = 0;                        // ArUco markers seen (ChArUco only)
+  // ChArUco: the factor of the copy the markers were searched in (1: full resolution; see
+  // DetectorOptions::search_max_side and docs/performance.md, "Busy frames"). 0 for a chessboard.
+  int search_shrink = 0;
   size_t size() const { return ids.size(); }
   bool empty() const { return ids.empty(); }
 };

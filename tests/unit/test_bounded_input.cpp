@@ -66,6 +66,9 @@ TEST(BoundedDetection, LargeNoiseFramesAreSearchedInBoundedTime) {
     EXPECT_LT(d.size(), 4u) << name;
     EXPECT_LT(s, 3.0) << name;  // measured 0.04-0.09 s CPU; generous for a loaded machine
   }
+  // ChArUco's copy of 48 MP of noise, shrunk 7 times, is noise of sigma 10.6, which OpenCV's
+  // marker search follows contour by contour (81 ms of CPU): it is searched at 14 (11 ms).
+  EXPECT_EQ(charuco.detect(noise48).search_shrink, 14);
 }
 
 // Small frames with a striped or checkered pattern gave OpenCV's marker search thousands of
@@ -274,6 +277,10 @@ TEST(BoundedDetection, LargeFramesKeepTheirCornerAccuracy) {
       const Pose p = board_pose_at(board, Eigen::Vector3d(0.02, 0.01, 0.45), 0.6, tilt, 0.2);
       const Detection d = board.detect(sc.render(p));
       ASSERT_EQ(d.size(), static_cast<size_t>(board.num_corners())) << spec << " tilt " << tilt;
+      // A camera's frame is not a noisy copy: the markers are searched at the size's factor.
+      if (board.spec().type == BoardType::kCharuco) {
+        EXPECT_EQ(d.search_shrink, 4) << spec;
+      }
       const auto truth = sc.true_corners(p);
       double ss = 0, worst = 0;
       for (size_t i = 0; i < d.size(); ++i) {
