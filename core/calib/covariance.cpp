@@ -141,10 +141,10 @@ void check_determined(const CalibrationResult& res, const CovarianceInput& in, c
     if (in.fixed[i] && in.aspect == 0) continue;
     const double rel = res.std_unit[i] / res.model.params()[i];
     if (!(rel <= in.max_relative_focal_std)) {
-      throw Error(ErrorCode::kDegenerate,
-                  "calibration: focal length " + names[i] + " is unobservable (relative std " +
-                      std::to_string(rel) +
-                      " at 1 px noise): the views are too close to parallel to the image plane");
+      throw FocalUnobservable(
+          "calibration: focal length " + names[i] + " is unobservable (relative std " +
+          std::to_string(rel) +
+          " at 1 px noise): the views are too close to parallel to the image plane");
     }
   }
   for (int i = 0; i < n_intr; ++i) {

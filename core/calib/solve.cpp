@@ -514,6 +514,16 @@ CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size ima
       names.push_back(name);
       held.fixed.push_back(name);
       if (reason.empty()) reason = e.what();
+    } catch (const calib_internal::FocalUnobservable& e) {
+      // Every holdable parameter not held yet, at once: the five coefficients' own behaviour.
+      const size_t before = names.size();
+      for (const std::string& h : options.hold_if_undetermined) {
+        if (std::find(names.begin(), names.end(), h) != names.end()) continue;
+        names.push_back(h);
+        held.fixed.push_back(h);
+      }
+      if (names.size() == before) throw;
+      if (reason.empty()) reason = e.what();
     }
   }
 }

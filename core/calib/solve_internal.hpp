@@ -50,9 +50,18 @@ class Undetermined : public Error {
   std::vector<double> direction_;
 };
 
+// The views do not pin a focal length down (relative std above
+// CalibrationOptions::max_relative_focal_std). calibrate() then holds every parameter of
+// hold_if_undetermined not yet held (a tilted sensor's tau trades with the focal length on two
+// views) and solves again, else passes the error on.
+class FocalUnobservable : public Error {
+ public:
+  explicit FocalUnobservable(const std::string& message) : Error(ErrorCode::kDegenerate, message) {}
+};
+
 // Residual statistics, the covariance of eq. 5 and the degeneracy checks at the solution, into
-// *res (whose model is set). Throws Undetermined for a rank deficiency, Error(kDegenerate) for
-// another degeneracy, each naming the parameter the views cannot determine.
+// *res (whose model is set). Throws Undetermined for a rank deficiency, FocalUnobservable,
+// Error(kDegenerate) for another degeneracy, each naming the parameter the views cannot determine.
 void covariance_at_solution(ceres::Problem& problem, Solution& solution, const CovarianceInput& in,
                             CalibrationResult* res);
 

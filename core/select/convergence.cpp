@@ -104,7 +104,8 @@ void CalibrationEngine::Impl::continue_towards_accuracy() {
   // the RMS left the realised error above 1.2 x accuracy_px in about one run in five
   // (docs/pose-selection.md, deviation 15).
   const double goal = *opt.accuracy_px;
-  if (expected->p90_px <= goal) {  // false for NaN
+  // (Not while a parameter is held: the expected error does not see a held guess.)
+  if (expected->p90_px <= goal && held_pending() < 0) {  // false for NaN
     const std::string why = "expected error " + px_text(expected->p90_px) + " (90th percentile; RMS " +
                             px_text(expected->rms_px) + ") <= accuracy_px " + px_text(goal);
     for (int i = 0; i < estimate.num_params(); ++i)

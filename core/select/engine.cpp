@@ -309,39 +309,48 @@ void CalibrationEngine::Impl::capture_step(const cv::Mat& image, const Detection
   const bool can_capture = state == EngineState::kInitialPose1 || state == EngineState::kInitialPose2 ||
                            state == EngineState::kRefining;
   if (!can_capture || !target) return;
+  const bool timed_out =
+      opt.target_timeout_frames > 0 &&
+      frame_index - target_since_frame > static_cast<uint64_t>(opt.target_timeout_frames);
   // Robots: the host's report decides, the Jaccard index (which needs good intrinsics) is
   // only reported. People: the projected areas must overlap (paper §4.2).
   r->pose_reached = opt.robot ? robot_reached : (r->jaccard > opt.jaccard_threshold);
   if (r->pose_reached && r->still && r->corners >= r->corners_required) {
     r->captured = true;
     crowded_frames = 0;
+    const size_t had = keyframes.size();
+    const EngineState was = state;
     // A keyframe is measured as with tracking off: the whole frame searched at full resolution.
-    if (tracker.last_was_tracked()) {
-      const Detection whole = tracker.detect_whole(board, image, opt.detector);
-      if (whole.size() >= det.size()) {
-        capture(whole);
-        return;
-      }
-    }
-    capture(det);
+    const bool tracked = tracker.last_was_tracked();
+    const Detection whole =
+        tracked ? tracker.detect_whole(board, image, opt.detector) : Detection{};
+    capture(tracked && whole.size() >= det.size() ? whole : det);
+    // A board held at a target whose keyframes the calibration keeps rejecting (seen: a tilted
+    // sensor's second initial pose, refused at every frame for 3000 frames) times out as an
+    // unreached target does.
+    if (keyframes.size() == had && state == was && target && timed_out)
+      skip_timed_out_target("its keyframes rejected");
   } else if (r->pose_reached && r->still && r->corners < r->corners_required &&
              ++crowded_frames >= kCrowdedFrames) {
     move_target_back(r->corners);
-  } else if (opt.target_timeout_frames > 0 &&
-             frame_index - target_since_frame > static_cast<uint64_t>(opt.target_timeout_frames)) {
-    EngineEvent e{EngineEvent::Kind::kTargetSkipped};
-    e.message = "not reached within " + std::to_string(opt.target_timeout_frames) + " frames";
-    if (state == EngineState::kRefining) {
-      e.parameter = estimate.param_names()[target_param];
-      emit(e);
-      set_target(next_pose(target_param), target_param);
-    } else {
-      // An initial pose nobody reaches would strand the session: offer it again, the tilted
-      // one tilted less each time (PoseGenerator::initial_pose).
-      const int index = state == EngineState::kInitialPose1 ? 0 : 1;
-      emit(e);
-      set_target(posegen.initial_pose(index, estimate, ++initial_retries), -1);
-    }
+  } else if (timed_out) {
+    skip_timed_out_target("not reached");
+  }
+}
+
+void CalibrationEngine::Impl::skip_timed_out_target(const std::string& what) {
+  EngineEvent e{EngineEvent::Kind::kTargetSkipped};
+  e.message = what + " within " + std::to_string(opt.target_timeout_frames) + " frames";
+  if (state == EngineState::kRefining) {
+    e.parameter = estimate.param_names()[target_param];
+    emit(e);
+    set_target(next_pose(target_param), target_param);
+  } else {
+    // An initial pose nobody reaches would strand the session: offer it again, the tilted
+    // one tilted less each time (PoseGenerator::initial_pose).
+    const int index = state == EngineState::kInitialPose1 ? 0 : 1;
+    emit(e);
+    set_target(posegen.initial_pose(index, estimate, ++initial_retries), -1);
   }
 }
 
@@ -516,11 +525,14 @@ bool CalibrationEngine::Impl::recalibrate() {
   }
   const std::string lens_move = opt.auto_lens_model ? choose_lens_model(&now) : "";
   const int tgt = keyframe_target.back();
+  const std::optional<CalibrationResult> prev = result ? result : prior;
   if (tgt >= 0) {
     ++param_targeted[tgt];
     ++group_keyframes[static_cast<int>(param_group(tgt))];
+    const std::string& target_name = estimate.param_names()[tgt];
+    if (prev && std::find(prev->held.begin(), prev->held.end(), target_name) != prev->held.end())
+      ++held_keyframes;
   }
-  const std::optional<CalibrationResult> prev = result ? result : prior;
   result = now;
   estimate = now.model;
   expected = posecal::expected_error(now);
@@ -543,7 +555,15 @@ bool CalibrationEngine::Impl::recalibrate() {
     update_convergence(*prev, now, tgt);
   const std::vector<std::string>& names = estimate.param_names();
   for (int i = 0; i < estimate.num_params(); ++i) {
-    if (now.fixed[i]) {
+    const bool held = std::find(now.held.begin(), now.held.end(), names[i]) != now.held.end();
+    if (held && held_keyframes < kHeldKeyframeLimit) {
+      param_converged[i] = false;  // a guess, not a value: targeted (held_pending)
+    } else if (held) {
+      if (!param_converged[i]) {
+        mark_converged(i, "held at its value: " + std::to_string(held_keyframes) +
+                              " keyframes aimed at the held parameters did not determine it");
+      }
+    } else if (now.fixed[i]) {
       param_converged[i] = true;  // nothing to refine
     } else if (prev &&
                std::find(prev->held.begin(), prev->held.end(), names[i]) != prev->held.end()) {

@@ -58,6 +58,11 @@ struct CalibrationEngine::Impl {
   const CalibrationResult& basis() const { return result ? *result : *prior; }
   std::optional<ExpectedError> expected;  // of `result`
   Eigen::MatrixXd information;  // marginal information of the free intrinsics (scoring)
+  // The intrinsics `information` and `gram` are over: the calibration's free ones, and while a
+  // held parameter is targeted (held_pending) the held ones too, under a weak prior
+  // (kHeldPriorStd): a candidate is then scored by how well it would determine them.
+  std::vector<bool> scoring_fixed;
+  static constexpr double kHeldPriorStd = 1.0;
   Eigen::MatrixXd gram;         // projection_gram() of the estimate (projection scoring)
   // EngineOptions::view_candidates: the pool for the next choice, drawn frame by frame, and the
   // pool of the last choice (for replacing skipped targets).
@@ -67,6 +72,16 @@ struct CalibrationEngine::Impl {
   std::vector<bool> param_converged;
   std::vector<int> param_targeted;
   int group_keyframes[2] = {0, 0};  // refinement keyframes captured per parameter group
+  // Refinement keyframes aimed at a parameter the calibration held because the keyframes did not
+  // determine it (CalibrationResult::held). A held parameter is not converged: its value is a
+  // guess the covariance, and with it expected_error_px, knows nothing of (seen: a rational lens
+  // "converged" with k5 held at 0, eps_gt 7.5 px against an expected 0.52 px). It is targeted
+  // first, until kHeldKeyframeLimit keyframes aimed at held parameters leave it still held; then
+  // it converges as held, and the event says so.
+  int held_keyframes = 0;
+  static constexpr int kHeldKeyframeLimit = 3;
+  bool is_held(int param) const;  // held in the calibration targets are chosen with
+  int held_pending() const;       // the first held, unconverged parameter; -1 if none
 
   Detection previous;
   BoardTracker tracker;  // EngineOptions::track_board
@@ -94,6 +109,9 @@ struct CalibrationEngine::Impl {
   // The frame's board: tracked while the operator moves it to a target, else searched whole.
   Detection detect(const cv::Mat& image);
   void move_target_back(int corners);
+  // The target after one that timed out (EngineOptions::target_timeout_frames): `what` says how
+  // ("not reached", ...).
+  void skip_timed_out_target(const std::string& what);
   void capture(const Detection& det);
   void after_calibration();
   // Recalibrates with the keyframes; false (keyframe dropped, event emitted) if it is rejected.

@@ -102,6 +102,7 @@ std::string CalibrationEngine::Impl::choose_lens_model(CalibrationResult* now) {
   lens_fits.resize(models.size());
   lens_evidence.clear();
   size_t cur = 0;
+  const double widest = widest_corner_deg(*now, keyframes);
   for (size_t m = 0; m < models.size(); ++m) {
     if (models[m] == current) {
       lens_fits[m] = *now;
@@ -111,7 +112,6 @@ std::string CalibrationEngine::Impl::choose_lens_model(CalibrationResult* now) {
     }
     LensCandidate c;
     c.model = models[m];
-    const double widest = widest_corner_deg(*now, keyframes);
     if (!is_ray_model(models[m]) && widest > kPinholeLimitDeg) {
       char why[160];
       std::snprintf(why, sizeof why,
@@ -160,8 +160,8 @@ std::string CalibrationEngine::Impl::choose_lens_model(CalibrationResult* now) {
       best_lead = lead - margin(m);
     }
   }
-  const double lead = lens_evidence[cur].bic - lens_evidence[best].bic;
   if (best == cur) return "";
+  const double lead = lens_evidence[cur].bic - lens_evidence[best].bic;
 
   const LensModel to = models[best];
   move_to_lens_model(to);

@@ -40,7 +40,9 @@ void CalibrationEngine::Impl::choose_refinement_target() {
     // Predicted variance of `best` after the candidate that will be captured: the prospective
     // test asks whether the keyframe the engine is about to request would help it.
     const CandidatePick p = best_candidate(best, views ? &*views : nullptr, scoring);
-    if (opt.prospective_convergence && converges_prospectively(best, p.variance)) {
+    // (A held parameter has no variance to predict: its keyframe is captured.)
+    if (opt.prospective_convergence && !is_held(best) &&
+        converges_prospectively(best, p.variance)) {
       if (all_converged()) return;
       continue;
     }
@@ -57,7 +59,10 @@ void CalibrationEngine::Impl::choose_accuracy_target() {
   std::optional<ViewCandidates> views;
   if (opt.view_candidates > 0) views.emplace(view_candidates());
   const ExpectedError* e = expected ? &*expected : prior_expected ? &*prior_expected : nullptr;
-  const int param = e && e->limiting_param >= 0 ? e->limiting_param : max_iod_parameter();
+  const int held = held_pending();
+  const int param = held >= 0                     ? held
+                    : e && e->limiting_param >= 0 ? e->limiting_param
+                                                  : max_iod_parameter();
   if (param < 0) throw Error(ErrorCode::kInternal, "accuracy target: no free intrinsic");
   set_picked_target(best_candidate(param, views ? &*views : nullptr, true), param);
 }
@@ -83,6 +88,8 @@ void CalibrationEngine::Impl::set_picked_target(const CandidatePick& p, int para
 // MaxIOD (paper §4.1): the parameter with the highest index of dispersion among those not
 // converged; -1 if none is left.
 int CalibrationEngine::Impl::max_iod_parameter() const {
+  // A held parameter's dispersion is unbounded: it comes first.
+  if (const int h = held_pending(); h >= 0) return h;
   int best = -1;
   double best_iod = -1;
   for (int i = 0; i < estimate.num_params(); ++i) {
@@ -93,6 +100,18 @@ int CalibrationEngine::Impl::max_iod_parameter() const {
     }
   }
   return best;
+}
+
+bool CalibrationEngine::Impl::is_held(int param) const {
+  if (!result && !prior) return false;
+  const std::vector<std::string>& held = basis().held;
+  return std::find(held.begin(), held.end(), estimate.param_names()[param]) != held.end();
+}
+
+int CalibrationEngine::Impl::held_pending() const {
+  for (int i = 0; i < estimate.num_params(); ++i)
+    if (!param_converged[i] && is_held(i)) return i;
+  return -1;
 }
 
 // The best of the rule candidates `cands` for parameter `param` and, if `views` is given, the
@@ -146,7 +165,7 @@ ViewCandidates CalibrationEngine::Impl::screen_views(const std::vector<ViewPose>
   vo.count = opt.view_candidates;
   vo.margin_px = view_margin_px();
   vo.shortlist = kExactViews;
-  return ViewCandidates(estimate, board, basis().fixed, information, gram, pool, vo);
+  return ViewCandidates(estimate, board, scoring_fixed, information, gram, pool, vo);
 }
 
 double CalibrationEngine::Impl::view_margin_px() const {
@@ -180,14 +199,15 @@ void CalibrationEngine::Impl::grow_view_pool(int n, int pool_size) {
 // linearisation point (docs/math.md).
 Eigen::MatrixXd CalibrationEngine::Impl::predicted_covariance(const TargetPose& t) const {
   const Eigen::MatrixXd info =
-      information + frame_information(estimate, t.T_cam_board, board.corners(), basis().fixed);
+      information + frame_information(estimate, t.T_cam_board, board.corners(), scoring_fixed);
   return info.ldlt().solve(Eigen::MatrixXd::Identity(info.rows(), info.cols()));
 }
 
 // Position of `param` among the free intrinsics, -1 if it is fixed.
 int CalibrationEngine::Impl::free_position(int param) const {
-  if (basis().fixed[param]) return -1;
-  return static_cast<int>(std::count(basis().fixed.begin(), basis().fixed.begin() + param, false));
+  const std::vector<bool>& fixed = scoring_fixed;
+  if (fixed[param]) return -1;
+  return static_cast<int>(std::count(fixed.begin(), fixed.begin() + param, false));
 }
 
 // Predicted variance of parameter `param` after capturing `t`.
@@ -203,11 +223,35 @@ double CalibrationEngine::Impl::predicted_projection(const TargetPose& t) const 
 }
 
 void CalibrationEngine::Impl::prepare_scoring() {
-  information = intrinsics_information(basis());
+  scoring_fixed = basis().fixed;
+  if (held_pending() >= 0 && result && !prior && result->poses.size() == keyframes.size()) {
+    // The held parameters freed: the keyframes' information (each frame's Schur complement onto
+    // the intrinsics, as the calibration's own covariance is made) plus a weak prior on the held
+    // ones, whose direction the keyframes leave (nearly) undetermined.
+    const std::vector<std::string>& names = estimate.param_names();
+    std::vector<int> held_idx;
+    for (const std::string& h : result->held) {
+      const auto it = std::find(names.begin(), names.end(), h);
+      if (it == names.end()) continue;
+      held_idx.push_back(static_cast<int>(it - names.begin()));
+      scoring_fixed[static_cast<size_t>(held_idx.back())] = false;
+    }
+    const int n = static_cast<int>(std::count(scoring_fixed.begin(), scoring_fixed.end(), false));
+    information = Eigen::MatrixXd::Zero(n, n);
+    for (size_t k = 0; k < keyframes.size(); ++k)
+      information +=
+          frame_information(estimate, result->poses[k], keyframes[k].board_points, scoring_fixed);
+    for (int h : held_idx) {
+      const int k = free_position(h);
+      information(k, k) += 1.0 / (kHeldPriorStd * kHeldPriorStd);
+    }
+  } else {
+    information = intrinsics_information(basis());
+  }
   // 8x5 rays: the same choices as 16x9 in 46 of 48 closed-loop runs (24 benchmark cameras), at a
   // quarter of the cost (docs/performance.md).
   if (opt.candidate_score == EngineOptions::CandidateScore::kProjection)
-    gram = projection_gram(estimate, basis().fixed, 8, 5);
+    gram = projection_gram(estimate, scoring_fixed, 8, 5);
 }
 
 // A new target for the same parameter (skipped or timed-out target).

@@ -388,6 +388,21 @@ Run closed_loop(const World& world, const CameraModel& truth, const BoardSpec& t
   auto cam = make_sim_camera(so);
   SimCamera* sim = as_sim_camera(cam.get());
   CalibrationSession session(std::move(cam), eo);
+  // POSECAL_BENCH_TRACE=1: every engine event of every closed loop on stderr (one run at a time
+  // makes sense: --threads 1).
+  static const bool trace = std::getenv("POSECAL_BENCH_TRACE") != nullptr;
+  if (trace) {
+    session.set_event_callback([seed, config, &session](const SessionEvent& e) {
+      if (e.kind != SessionEvent::Kind::kEngine) return;
+      std::fprintf(stderr, "[%llu %s] %s kf=%d %s %s\n", static_cast<unsigned long long>(seed),
+                   config.c_str(), engine_event_name(e.engine->kind), e.engine->keyframes,
+                   e.engine->parameter.c_str(), e.engine->message.c_str());
+      if (e.engine->kind != EngineEvent::Kind::kCalibrated) return;
+      std::fprintf(stderr, "    %s:", lens_model_name(session.engine().estimate().lens_model()));
+      for (double v : session.engine().estimate().params()) std::fprintf(stderr, " %.5g", v);
+      std::fprintf(stderr, "\n");
+    });
+  }
   Run r;
   for (int f = 0; f < 3000 && !session.finished(); ++f) {
     session.step(1000);
