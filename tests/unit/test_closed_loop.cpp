@@ -155,16 +155,16 @@ TEST(ClosedLoop, WideAngleRationalCamera) {
   // 2448x2048 with about 110 degrees horizontal field of view, OpenCV's rational model (the form
   // its calibrations of such lenses take: numerator and denominator both large), calibrated as
   // opencv8. The 5-sigma check covers the pinhole part: the rational coefficients are strongly
-  // correlated (k1 with k4, ...), their linearised sigma does not describe their error. Not yet
-  // checked: eps_gt, which scatters from 0.05 to 15.8 px over these four runs (the worst with k4
-  // and k5 held at 0 from the first keyframes on); pose selection for the rational terms is
-  // unfinished (issue 14).
+  // correlated (k1 with k4, ...), their linearised sigma does not describe their error. eps_gt
+  // below 3 px: 0.05-1.29 px over these four runs since a held coefficient is a target (before:
+  // up to 15.8 px, k4 and k5 held at 0 from the first keyframes on and "converged").
   Case c{
       "wide-rational",
       CameraModel(2448, 2048, LensModel::kOpenCV8,
                   {1224, 1226, 1230.5, 1020.2, 1.5, 0.3, 0.0005, -0.0003, 0.01, 1.85, 0.6, 0.05}),
       2, 4};
   c.lens = LensModel::kOpenCV8;
+  c.max_eps_gt = 3.0;
   run_case(c);
 }
 
