@@ -3,7 +3,7 @@
 // threads for growth.
 //
 //   build/bin/posecal_soak [--calibrations N] [--threads T] [--sample-every K]
-//                          [--max-growth-bytes B] [--result-every R]
+//                          [--max-growth-bytes B] [--result-every R] [--trim 0|1]
 //
 // Each calibration is real but cheap: sim://?model=VGA&operator=hold-only&seed=S, a 640x480
 // webcam with pincushion distortion (the benchmark's "vga" family, written to a temporary model
@@ -15,13 +15,17 @@
 // One warm-up calibration runs first (OpenCV's thread pool and other lazily created process
 // state); the start counts are taken after it. Every K finished calibrations the resident set
 // (/proc/self/statm), the open descriptors (/proc/self/fd) and the threads (/proc/self/task) are
-// sampled. At the end: the table, the RSS growth per calibration (least-squares slope over the
+// sampled; with --trim 1 the allocator first returns its free memory to the system
+// (malloc_trim), so that a sample measures live memory rather than what glibc keeps cached (the
+// 60-calibration run in ctest: without it, two samples differed by 4 MB either way from run to
+// run). At the end: the table, the RSS growth per calibration (least-squares slope over the
 // samples of the second half of the run, without those taken once fewer sessions than threads
 // remain), and the descriptors and threads after the workers
 // have ended. Exit status 1 if the slope exceeds B bytes per calibration (default 1024), if the
 // descriptors or threads are not back at their start counts, or if a calibration failed (an ABI
 // call returned an error); 2 on a usage error.
 #include <dirent.h>
+#include <malloc.h>
 #include <unistd.h>
 
 #include <algorithm>
@@ -160,7 +164,7 @@ double slope(const std::vector<double>& x, const std::vector<double>& y) {
 int usage(const char* argv0) {
   std::fprintf(stderr,
                "usage: %s [--calibrations N] [--threads T] [--sample-every K] "
-               "[--max-growth-bytes B] [--result-every R]\n",
+               "[--max-growth-bytes B] [--result-every R] [--trim 0|1]\n",
                argv0);
   return 2;
 }
@@ -170,6 +174,7 @@ int usage(const char* argv0) {
 int main(int argc, char** argv) {
   int calibrations = 1000, nthreads = 1, sample_every = 50;
   double max_growth = 1024;
+  bool trim = false;
   Run run;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
@@ -183,6 +188,8 @@ int main(int argc, char** argv) {
       sample_every = std::atoi(v);
     else if (a == "--max-growth-bytes")
       max_growth = std::atof(v);
+    else if (a == "--trim")
+      trim = std::atoi(v) != 0;
     else if (a == "--result-every")
       run.result_every = std::atoi(v);
     else
@@ -210,6 +217,7 @@ int main(int argc, char** argv) {
   }
 
   calibrate(&run, 0, 0);  // warm-up
+  if (trim) malloc_trim(0);
   const Sample start{0, 0, rss_bytes(), open_fds(), threads(), 0};
   std::printf("soak: %d calibrations of sim://?model=vga&operator=hold-only on %d thread(s)\n",
               calibrations, nthreads);
@@ -229,6 +237,7 @@ int main(int argc, char** argv) {
       if (calibrate(&run, index, w)) ++converged;
       const int finished = ++done;
       if (finished % sample_every == 0 || finished == calibrations) {
+        if (trim) malloc_trim(0);
         Sample s{finished,    std::chrono::duration<double>(Clock::now() - t0).count(),
                  rss_bytes(), open_fds(),
                  threads(),   converged.load()};
@@ -244,6 +253,7 @@ int main(int argc, char** argv) {
   for (int w = 0; w < nthreads; ++w) pool.emplace_back(worker, w);
   for (std::thread& t : pool) t.join();
   const double seconds = std::chrono::duration<double>(Clock::now() - t0).count();
+  if (trim) malloc_trim(0);
   const Sample end{done.load(), seconds, rss_bytes(), open_fds(), threads(), converged.load()};
 
   std::sort(samples.begin(), samples.end(),
