@@ -17,6 +17,8 @@
 #include <cstdio>
 #include <filesystem>
 #include <map>
+#include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 #include <string>
 #include <vector>
 
@@ -232,6 +234,25 @@ int main(int argc, char** argv) {
       fuzz[name] = testing_support::fuzz_session_frame(e.path().string());
   }
   for (const auto& [name, frame] : fuzz) register_frame("BM_DetectFuzz/" + name, kCharuco, &frame);
+  // Scenes without a board (a circuit board, an aerial photo, a room, a painting, fruit) and one
+  // with it (left01.jpg), from Debian's opencv-doc if it is installed: as they are (512-640 px)
+  // and scaled up to 1280 px on the longer side (cubic), the camera's view while the operator
+  // fetches the board. OpenCV's chessboard search tries all its thresholds when it finds nothing.
+  static std::map<std::string, cv::Mat> scenes;
+  const fs::path scene_dir = "/usr/share/doc/opencv-doc/examples/data";
+  for (const char* file :
+       {"board.jpg", "aero3.jpg", "home.jpg", "pic2.png", "apple.jpg", "left01.jpg"}) {
+    const cv::Mat image = cv::imread((scene_dir / file).string(), cv::IMREAD_GRAYSCALE);
+    if (image.empty()) continue;
+    scenes[file] = image;
+    const double s = 1280.0 / std::max(image.cols, image.rows);
+    cv::resize(image, scenes[std::string(file) + "@1280"], cv::Size(), s, s, cv::INTER_CUBIC);
+  }
+  for (const char* spec : {kChessboard, kCharuco}) {
+    const std::string kind = std::string(spec).substr(0, std::string(spec).find(':'));
+    for (const auto& [name, frame] : scenes)
+      register_frame("BM_DetectScene/" + kind + "/" + name, spec, &frame);
+  }
   benchmark::Initialize(&argc, argv);
   if (benchmark::ReportUnrecognizedArguments(argc, argv)) return 1;
   benchmark::RunSpecifiedBenchmarks();
