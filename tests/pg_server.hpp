@@ -1,14 +1,19 @@
 // A real PostgreSQL server for the tests of PostgreSQL records (Debian's `postgresql` package):
 // initdb in a temporary directory, pg_ctl on 127.0.0.1 and a free port, stopped and removed at
 // the end. initdb refuses root: as root (CI), the server runs as the `postgres` user the package
-// creates. fsync is off: these tests prove the SQL, not the server's durability.
+// creates. fsync is off: these tests prove the SQL, not the server's durability. A reaper process
+// stops the server and removes the directory when the test process ends in any way, a crash or
+// a kill -9 included (the server is a daemon of its own and would otherwise keep running).
 #pragma once
 
+#include <fcntl.h>
 #include <gtest/gtest.h>
 #include <netinet/in.h>
 #include <sys/socket.h>
+#include <sys/wait.h>
 #include <unistd.h>
 
+#include <cerrno>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
@@ -67,6 +72,7 @@ class PgServer {
       error_ = "cannot give " + dir_ + " to the postgres user";
       return;
     }
+    start_reaper();
     if (!run(bin_ + "/initdb -D " + data() + " -A trust -U posecal -E UTF8 --no-locale " +
              "--no-sync > " + dir_ + "/initdb.log 2>&1")) {
       error_ = "initdb failed: " + read(dir_ + "/initdb.log");
@@ -84,6 +90,12 @@ class PgServer {
       std::error_code ec;
       std::filesystem::remove_all(dir_, ec);
     }
+    if (reaper_ > 0) {
+      ::close(reaper_pipe_);  // the reaper finds nothing left to do
+      int status = 0;
+      while (::waitpid(reaper_, &status, 0) < 0 && errno == EINTR) {
+      }
+    }
   }
   PgServer(const PgServer&) = delete;
   PgServer& operator=(const PgServer&) = delete;
@@ -91,6 +103,7 @@ class PgServer {
   // Why the server is not running ("" if it is).
   const std::string& error() const { return error_; }
   int port() const { return port_; }
+  const std::string& directory() const { return dir_; }
 
   std::string url(const std::string& database) const {
     return "postgresql://posecal@127.0.0.1:" + std::to_string(port_) + "/" + database;
@@ -132,6 +145,32 @@ class PgServer {
   }
 
  private:
+  // A child in a session of its own (a kill of the test's process group does not reach it) that
+  // waits for the end of a pipe whose only writer is this process (close-on-exec, so neither
+  // the shells of run() nor the server inherit it), then stops the server and removes the
+  // directory. The command is made before fork(): the child only reads, and execs a shell.
+  void start_reaper() {
+    const std::string command = as_user_ + bin_ + "/pg_ctl -D " + data() +
+                                " -m immediate -w -t 30 stop > /dev/null 2>&1; rm -rf " + dir_;
+    int fds[2];
+    if (::pipe2(fds, O_CLOEXEC) != 0) return;
+    reaper_ = ::fork();
+    if (reaper_ == 0) {
+      ::close(fds[1]);
+      ::setsid();
+      char c;
+      while (::read(fds[0], &c, 1) != 0 && errno == EINTR) {
+      }
+      ::execl("/bin/sh", "sh", "-c", command.c_str(), static_cast<char*>(nullptr));
+      ::_exit(127);
+    }
+    ::close(fds[0]);
+    if (reaper_ < 0) {
+      ::close(fds[1]);
+      return;
+    }
+    reaper_pipe_ = fds[1];
+  }
   std::string data() const { return dir_ + "/data"; }
   bool run(const std::string& command) const {
     return std::system((as_user_ + command).c_str()) == 0;
@@ -146,6 +185,8 @@ class PgServer {
   std::string bin_, dir_, as_user_, error_;
   int port_ = 0;
   bool running_ = false;
+  pid_t reaper_ = -1;
+  int reaper_pipe_ = -1;
 };
 
 }  // namespace posecal::testing_pg

@@ -3,6 +3,7 @@
 // writers on one store do not lose or corrupt a record; bad stores are refused naming the store
 // and the cause. The same tests run against both stores: a SQLite file and a PostgreSQL server
 // the test starts itself (tests/pg_server.hpp).
+#include <fcntl.h>
 #include <gtest/gtest.h>
 #include <sqlite3.h>
 #include <sys/wait.h>
@@ -12,6 +13,7 @@
 #include <filesystem>
 #include <fstream>
 #include <set>
+#include <sstream>
 #include <thread>
 
 #include "common/error.hpp"
@@ -338,6 +340,58 @@ TEST_P(Store, BadStoresAndRunIdsAreRefusedNamingTheCause) {
     sqlite3_close(raw);
   }
   expect_error([&] { RecordStore::open(db); }, ErrorCode::kInvalidArgument, "schema version 7");
+}
+
+// The tests' PostgreSQL server is a daemon: a test process that crashes or is killed must not
+// leave it running (nor its directory). A child process starts one and kills itself with
+// SIGKILL (no destructor runs); the server's port is closed and its directory gone soon after.
+TEST(PgServerForTests, IsStoppedWhenTheTestProcessIsKilled) {
+  int fds[2];
+  ASSERT_EQ(::pipe2(fds, O_CLOEXEC), 0);  // the server must not hold the pipe open
+  const pid_t child = ::fork();
+  ASSERT_GE(child, 0);
+  if (child == 0) {
+    ::close(fds[0]);
+    testing_pg::PgServer server;
+    const std::string line = server.error().empty()
+                                 ? std::to_string(server.port()) + " " + server.directory() + "\n"
+                                 : "error " + server.error() + "\n";
+    if (::write(fds[1], line.data(), line.size()) < 0) ::_exit(2);
+    ::kill(::getpid(), SIGKILL);
+  }
+  ::close(fds[1]);
+  std::string line;
+  char buf[512];
+  for (ssize_t n;
+       line.find('\n') == std::string::npos && (n = ::read(fds[0], buf, sizeof buf)) > 0;)
+    line.append(buf, n);
+  ::close(fds[0]);
+  int status = 0;
+  ASSERT_EQ(::waitpid(child, &status, 0), child);
+  EXPECT_TRUE(WIFSIGNALED(status) && WTERMSIG(status) == SIGKILL);
+  ASSERT_NE(line.rfind("error", 0), 0u) << line;
+  std::istringstream in(line);
+  int port = 0;
+  std::string dir;
+  in >> port >> dir;
+  ASSERT_GT(port, 0) << line;
+  const auto accepting = [port] {
+    const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+    sockaddr_in a{};
+    a.sin_family = AF_INET;
+    a.sin_port = htons(static_cast<uint16_t>(port));
+    a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    const bool ok = ::connect(fd, reinterpret_cast<sockaddr*>(&a), sizeof a) == 0;
+    ::close(fd);
+    return ok;
+  };
+  bool stopped = false;
+  for (int i = 0; i < 300 && !stopped; ++i) {  // 30 s
+    stopped = !accepting() && !fs::exists(dir);
+    if (!stopped) std::this_thread::sleep_for(std::chrono::milliseconds(100));
+  }
+  EXPECT_TRUE(stopped) << "port " << port << (accepting() ? " still accepting" : "")
+                       << (fs::exists(dir) ? ", " + dir + " still there" : "");
 }
 
 // A PostgreSQL server that goes away in the middle of a run (stopped at once, as a crash or a
