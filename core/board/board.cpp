@@ -19,6 +19,7 @@
 #include <sstream>
 
 #include "board/board_internal.hpp"
+#include "board/saddles.hpp"
 #include "common/error.hpp"
 
 namespace posecal {
@@ -620,6 +621,10 @@ std::vector<cv::Point2f> Board::detect_chessboard(const cv::Mat& gray, const Sea
   // half size took 110-180 ms; docs/performance.md, "Busy frames"); only if no board is found
   // there (a board of small squares) does the half-size search run: first on the copy with the
   // clutter's fine dark detail closed (closed_for_search), then on the plain copy.
+  if (options.chessboard_precheck &&
+      chessboard_crossings(search) < chessboard_crossings_needed(spec_.cols, spec_.rows)) {
+    return {};
+  }
   bool found = false;
   if (cap > 0 && std::min(search.cols, search.rows) >= 32 && busy(half_size_contours(search), cap)) {
     const int quarter = 4 * k;

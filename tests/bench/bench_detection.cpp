@@ -253,6 +253,20 @@ int main(int argc, char** argv) {
     for (const auto& [name, frame] : scenes)
       register_frame("BM_DetectScene/" + kind + "/" + name, spec, &frame);
   }
+  // The chessboard's lattice pre-check (DetectorOptions::chessboard_precheck) off, in the same
+  // run: on the scenes, and on the board and noise frames at every size, where it is a cost.
+  DetectorOptions no_precheck;
+  no_precheck.chessboard_precheck = false;
+  for (const auto& [name, frame] : scenes)
+    register_frame("BM_DetectScene/chessboard/" + name + "/no_precheck", kChessboard, &frame,
+                   no_precheck);
+  for (int i = 0; i < static_cast<int>(sizes().size()); ++i) {
+    for (const bool noise : {true, false}) {
+      register_frame(std::string("BM_Detect/chessboard/") + sizes()[i].name +
+                         (noise ? "/noise" : "/board") + "/no_precheck",
+                     kChessboard, &scene(kChessboard, i, noise).image, no_precheck);
+    }
+  }
   benchmark::Initialize(&argc, argv);
   if (benchmark::ReportUnrecognizedArguments(argc, argv)) return 1;
   benchmark::RunSpecifiedBenchmarks();

@@ -11,9 +11,11 @@
 #include <filesystem>
 #include <fstream>
 #include <opencv2/imgcodecs.hpp>
+#include <opencv2/imgproc.hpp>
 #include <thread>
 
 #include "board/board.hpp"
+#include "board/saddles.hpp"
 #include "board/views.hpp"
 #include "calib/offline.hpp"
 #include "common/error.hpp"
@@ -259,6 +261,96 @@ TEST(BoundedDetection, ChessboardSearchesOfClutterAreBounded) {
       EXPECT_LT(std::sqrt(ss / d.size()), 0.1) << square << " " << distance;
     }
   }
+}
+
+// Scenes without a board kept OpenCV's chessboard search busy for 0.1-1.9 s a frame (a circuit
+// board, fruit and a painting at 1280 px; docs/performance.md, "Scenes without a board"): the
+// lattice pre-check (board/saddles.hpp) finds too few chessboard crossings in them, so the
+// search does not run.
+TEST(BoundedDetection, ScenesWithoutABoardAreRejectedBeforeTheChessboardSearch) {
+  const fs::path data = "/usr/share/doc/opencv-doc/examples/data";
+  if (!fs::exists(data / "board.jpg")) GTEST_SKIP() << "Debian's opencv-doc is not installed";
+  const Board board(BoardSpec::parse("chessboard:9x6:0.025"));
+  const int needed = chessboard_crossings_needed(9, 6);
+  EXPECT_EQ(needed, 7);
+  for (const char* file : {"board.jpg", "apple.jpg", "pic2.png", "aero3.jpg", "home.jpg"}) {
+    const cv::Mat image = cv::imread((data / file).string(), cv::IMREAD_GRAYSCALE);
+    ASSERT_FALSE(image.empty()) << file;
+    cv::Mat large;
+    const double s = 1280.0 / std::max(image.cols, image.rows);
+    cv::resize(image, large, cv::Size(), s, s, cv::INTER_CUBIC);
+    for (const cv::Mat& frame : {image, large}) {
+      const int crossings = chessboard_crossings(frame);
+      std::printf("%s at %dx%d: %d crossings\n", file, frame.cols, frame.rows, crossings);
+      EXPECT_LT(crossings, needed) << file << " at " << frame.cols << " px";
+      EXPECT_TRUE(board.detect(frame).empty()) << file;
+    }
+  }
+  // A checkerboard texture is a lattice: it is searched (ChessboardSearchesOfClutterAreBounded
+  // bounds that search), however few of its saddles the cap keeps.
+  EXPECT_GE(chessboard_crossings(checkerboard_clutter(cv::Size(1280, 720), 14)), needed);
+}
+
+// The pre-check loses no board that OpenCV's search finds: OpenCV's 26 photos of a 9x6 board
+// (640x480, and scaled up to 1280 px), and rendered boards near and far, tilted up to 35
+// degrees, blurred and noisy, of 8-60 px squares, give the same corners with and without it.
+// (Boards tilted 60 degrees cost OpenCV's search 3-25 s a frame at 1280x720 with or without the
+// pre-check: docs/performance.md, "Scenes without a board".)
+TEST(BoundedDetection, TheChessboardPrecheckKeepsEveryBoard) {
+  const Board board(BoardSpec::parse("chessboard:9x6:0.025"));
+  DetectorOptions without;
+  without.chessboard_precheck = false;
+  int compared = 0;
+  auto same = [&](const cv::Mat& frame, const std::string& name) {
+    const Detection d = board.detect(frame);
+    const Detection o = board.detect(frame, without);
+    if (o.empty()) return;
+    ++compared;
+    const int crossings = chessboard_crossings(frame);
+    EXPECT_EQ(d.ids, o.ids) << name << ": " << crossings << " crossings";
+    for (size_t i = 0; i < std::min(d.size(), o.size()); ++i)
+      EXPECT_EQ(d.image_points[i], o.image_points[i]) << name << " corner " << i;
+  };
+  const fs::path data = "/usr/share/doc/opencv-doc/examples/data";
+  for (const char* side : {"left", "right"}) {
+    for (int i = 1; i <= 14; ++i) {
+      char file[32];
+      std::snprintf(file, sizeof file, "%s%02d.jpg", side, i);
+      const cv::Mat image = cv::imread((data / file).string(), cv::IMREAD_GRAYSCALE);
+      if (image.empty()) continue;
+      cv::Mat large;
+      cv::resize(image, large, cv::Size(1280, 960), 0, 0, cv::INTER_CUBIC);
+      same(image, file);
+      same(large, std::string(file) + "@1280");
+    }
+  }
+  const CameraModel cam = c525_reference_model();
+  int rendered = 0;
+  for (const double noise : {2.0, 10.0}) {
+    for (const double blur : {0.8, 2.0}) {
+      RenderOptions ro;
+      ro.blur_sigma_px = blur;
+      ro.noise_sigma = noise;
+      ro.supersample = 1;
+      SyntheticCamera sc(cam, board, ro);
+      // Squares of about 60, 30, 15 and 8 px.
+      for (const double distance : {0.45, 0.9, 1.8, 3.2}) {
+        for (const double tilt : {0.0, 0.6}) {
+          const Pose p =
+              board_pose_at(board, Eigen::Vector3d(0.02, -0.01, distance), 0.4, tilt, 0.3);
+          char name[96];
+          std::snprintf(name, sizeof name, "rendered: noise %.0f, blur %.1f, %.2f m, tilt %.2f",
+                        noise, blur, distance, tilt);
+          const int before = compared;
+          same(sc.render(p), name);
+          rendered += compared - before;
+        }
+      }
+    }
+  }
+  std::printf("%d frames where OpenCV finds the board, %d of them rendered\n", compared, rendered);
+  EXPECT_GE(compared, 60);
+  EXPECT_GE(rendered, 20);
 }
 
 // The corners of a large frame are refined at full resolution: at 12 MP they are as accurate as
