@@ -38,11 +38,27 @@ inline std::string pg_bin_dir() {
   return best;
 }
 
-inline int free_port() {
-  const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+// 127.0.0.1:port (0: any free port).
+inline sockaddr_in loopback(int port) {
   sockaddr_in a{};
   a.sin_family = AF_INET;
+  a.sin_port = htons(static_cast<uint16_t>(port));
   a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  return a;
+}
+
+// Whether a server accepts connections on 127.0.0.1:port.
+inline bool accepting(int port) {
+  const int fd = ::socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
+  sockaddr_in a = loopback(port);
+  const bool ok = ::connect(fd, reinterpret_cast<sockaddr*>(&a), sizeof a) == 0;
+  ::close(fd);
+  return ok;
+}
+
+inline int free_port() {
+  const int fd = ::socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
+  sockaddr_in a = loopback(0);
   socklen_t len = sizeof a;
   int port = 0;
   if (::bind(fd, reinterpret_cast<sockaddr*>(&a), sizeof a) == 0 &&
@@ -85,16 +101,17 @@ class PgServer {
     if (!running_) error_ = "pg_ctl start failed: " + read(dir_ + "/server.log");
   }
   ~PgServer() {
+    if (reaper_ > 0) {
+      ::close(reaper_pipe_);  // the reaper stops the server and removes the directory
+      int status = 0;
+      while (::waitpid(reaper_, &status, 0) < 0 && errno == EINTR) {
+      }
+      return;
+    }
     stop();
     if (!dir_.empty()) {
       std::error_code ec;
       std::filesystem::remove_all(dir_, ec);
-    }
-    if (reaper_ > 0) {
-      ::close(reaper_pipe_);  // the reaper finds nothing left to do
-      int status = 0;
-      while (::waitpid(reaper_, &status, 0) < 0 && errno == EINTR) {
-      }
     }
   }
   PgServer(const PgServer&) = delete;
@@ -156,7 +173,10 @@ class PgServer {
     if (::pipe2(fds, O_CLOEXEC) != 0) return;
     reaper_ = ::fork();
     if (reaper_ == 0) {
-      ::close(fds[1]);
+      // Nothing of the test's but the pipe's end: an inherited socket or file would stay open
+      // for as long as the test runs.
+      if (fds[0] > 3) ::close_range(3, static_cast<unsigned>(fds[0]) - 1, 0);
+      ::close_range(static_cast<unsigned>(fds[0]) + 1, ~0U, 0);
       ::setsid();
       char c;
       while (::read(fds[0], &c, 1) != 0 && errno == EINTR) {

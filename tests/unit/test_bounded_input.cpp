@@ -294,7 +294,7 @@ TEST(BoundedDetection, ScenesWithoutABoardAreRejectedBeforeTheChessboardSearch) 
 // The pre-check loses no board that OpenCV's search finds: OpenCV's 26 photos of a 9x6 board
 // (640x480, and scaled up to 1280 px), and rendered boards near and far, tilted up to 35
 // degrees, blurred and noisy, of 8-60 px squares, give the same corners with and without it.
-// (Boards tilted 60 degrees cost OpenCV's search 3-25 s a frame at 1280x720 with or without the
+// (Boards tilted 60 degrees cost OpenCV's search 2-26 s a frame at 1280x720 with or without the
 // pre-check: docs/performance.md, "Scenes without a board".)
 TEST(BoundedDetection, TheChessboardPrecheckKeepsEveryBoard) {
   const Board board(BoardSpec::parse("chessboard:9x6:0.025"));

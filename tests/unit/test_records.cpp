@@ -375,22 +375,12 @@ TEST(PgServerForTests, IsStoppedWhenTheTestProcessIsKilled) {
   std::string dir;
   in >> port >> dir;
   ASSERT_GT(port, 0) << line;
-  const auto accepting = [port] {
-    const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
-    sockaddr_in a{};
-    a.sin_family = AF_INET;
-    a.sin_port = htons(static_cast<uint16_t>(port));
-    a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-    const bool ok = ::connect(fd, reinterpret_cast<sockaddr*>(&a), sizeof a) == 0;
-    ::close(fd);
-    return ok;
-  };
   bool stopped = false;
   for (int i = 0; i < 300 && !stopped; ++i) {  // 30 s
-    stopped = !accepting() && !fs::exists(dir);
+    stopped = !testing_pg::accepting(port) && !fs::exists(dir);
     if (!stopped) std::this_thread::sleep_for(std::chrono::milliseconds(100));
   }
-  EXPECT_TRUE(stopped) << "port " << port << (accepting() ? " still accepting" : "")
+  EXPECT_TRUE(stopped) << "port " << port << (testing_pg::accepting(port) ? " still accepting" : "")
                        << (fs::exists(dir) ? ", " + dir + " still there" : "");
 }
 
