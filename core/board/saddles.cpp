@@ -204,10 +204,11 @@ int chessboard_crossings(const cv::Mat& gray) {
   if (std::max(gray.cols, gray.rows) > kMaxSide) {
     cv::resize(gray, level, cv::Size(gray.cols / 2, gray.rows / 2), 0, 0, cv::INTER_AREA);
   }
+  if (std::min(level.cols, level.rows) < kMinSide) return kCannotTell;
   for (int l = 0; l < kLevels && std::min(level.cols, level.rows) >= kMinSide; ++l) {
     bool dense = false;
     const std::vector<Saddle> saddles = find_saddles(level, &dense);
-    if (dense) return kDenseLatticeCrossings;
+    if (dense) return kCannotTell;
     best = std::max(best, count_crossings(saddles, level.size()));
     cv::Mat smaller;
     cv::resize(level, smaller, cv::Size(level.cols / 2, level.rows / 2), 0, 0, cv::INTER_AREA);

@@ -15,11 +15,12 @@ namespace posecal {
 // above 640 px, its half-size copy) and two copies shrunk by 2 and 4 more (large squares under
 // sensor noise are found there). The kMaxSaddles strongest saddles above 2% of the strongest are
 // examined; a level with more than that, nearly all as strong as the strongest (a dense lattice: a
-// checkerboard texture, which the strongest would only sample), gives kDenseLatticeCrossings.
+// checkerboard texture, which the strongest would only sample), gives kCannotTell, and so does a
+// frame under 48 px a side (the smallest level examined): such frames are searched.
 int chessboard_crossings(const cv::Mat& gray);
 
 inline constexpr int kMaxSaddles = 600;
-inline constexpr int kDenseLatticeCrossings = 1 << 20;
+inline constexpr int kCannotTell = 1 << 20;
 
 // The crossings a frame must have before the chessboard search runs for a board of
 // cols x rows inner corners: a quarter of the board's interior corners (the (cols - 2) x

@@ -289,6 +289,9 @@ TEST(BoundedDetection, ScenesWithoutABoardAreRejectedBeforeTheChessboardSearch) 
   // A checkerboard texture is a lattice: it is searched (ChessboardSearchesOfClutterAreBounded
   // bounds that search), however few of its saddles the cap keeps.
   EXPECT_GE(chessboard_crossings(checkerboard_clutter(cv::Size(1280, 720), 14)), needed);
+  // So is a frame too small to examine (a tracked region of a few squares).
+  EXPECT_EQ(chessboard_crossings(checkerboard_clutter(cv::Size(200, 40), 4)), kCannotTell);
+  EXPECT_EQ(chessboard_crossings(cv::Mat(90, 1400, CV_8U, cv::Scalar(128))), kCannotTell);
 }
 
 // The pre-check loses no board that OpenCV's search finds: OpenCV's 26 photos of a 9x6 board
