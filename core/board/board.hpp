@@ -111,9 +111,9 @@ struct DetectorOptions {
   int max_candidate_quads = kMaxCandidateQuads;
   static constexpr int kMaxCandidateQuads = 300;
   // Chessboard: OpenCV's search runs only on frames with enough chessboard-like lattice
-  // crossings (board/saddles.hpp: half the board's interior corners). OpenCV's search took
-  // 0.4-1.9 s on a circuit board or a photo at 1280 px and found nothing; the test costs a few
-  // milliseconds (docs/performance.md, "Scenes without a board"). false: always search.
+  // crossings (board/saddles.hpp: a quarter of the board's interior corners). OpenCV's search
+  // took 0.4-1.9 s on a circuit board or a photo at 1280 px and found nothing; the test costs a
+  // few milliseconds (docs/performance.md, "Scenes without a board"). false: always search.
   bool chessboard_precheck = true;
 };
 
