@@ -37,8 +37,10 @@
 #include <mutex>
 #include <string>
 #include <thread>
+#include <utility>
 #include <vector>
 
+#include "bench_common.hpp"
 #include "posecal.h"
 
 namespace {
@@ -158,12 +160,7 @@ double slope(const std::vector<double>& x, const std::vector<double>& y) {
       if (x[j] != x[i]) slopes.push_back((y[j] - y[i]) / (x[j] - x[i]));
     }
   }
-  if (slopes.empty()) return 0;
-  const size_t n = slopes.size();
-  std::nth_element(slopes.begin(), slopes.begin() + n / 2, slopes.end());
-  const double upper = slopes[n / 2];
-  if (n % 2 == 1) return upper;
-  return 0.5 * (upper + *std::max_element(slopes.begin(), slopes.begin() + n / 2));
+  return posecal_bench::quantile(std::move(slopes), 0.5);
 }
 
 int usage(const char* argv0) {
