@@ -249,7 +249,8 @@ cv::Mat to_gray(const cv::Mat& image) {
 
 // Subpixel window half-size from the smallest distance between neighbouring corners: large
 // enough to see the saddle, small enough not to reach the next corner.
-int subpix_half_window(const std::vector<cv::Point2f>& pts, int cols, int rows, int max_hw = 11) {
+// The shortest distance between neighbouring corners of a chessboard's cols x rows grid.
+double min_corner_spacing(const std::vector<cv::Point2f>& pts, int cols, int rows) {
   double min_d = 1e9;
   for (int i = 0; i < rows; ++i) {
     for (int j = 0; j < cols; ++j) {
@@ -258,7 +259,11 @@ int subpix_half_window(const std::vector<cv::Point2f>& pts, int cols, int rows, 
       if (i + 1 < rows) min_d = std::min(min_d, cv::norm(p - pts[(i + 1) * cols + j]));
     }
   }
-  return std::clamp(static_cast<int>(min_d * 0.4), 2, max_hw);
+  return min_d;
+}
+
+int subpix_half_window(const std::vector<cv::Point2f>& pts, int cols, int rows, int max_hw = 11) {
+  return std::clamp(static_cast<int>(min_corner_spacing(pts, cols, rows) * 0.4), 2, max_hw);
 }
 
 // Chebyshev (L-infinity) distance from the origin to the segment a-b: cornerSubPix's window is a
@@ -599,6 +604,64 @@ cv::Mat closed_for_search(const cv::Mat& search) {
   return closed;
 }
 
+// The refinement of a board the sector search found is kept unless it fits a plane's projection
+// (a homography) worse than the sector search's own corners did: by more than twice their RMS
+// residual plus kRefinedGridSlackPx. Squares of 8.5 px under blur 2 px, tilted 60 degrees: the
+// refined corners (cornerSubPix's window 7x7 px) 1.1-1.4 px RMS from the true ones, residual
+// 1.1-1.3 px against 0.34 px before; every board where the refinement helped kept its residual
+// within 0.2 px of the sector search's (72 rendered frames, docs/performance.md, "Steep boards
+// under noise"). Lens distortion adds to both residuals alike.
+constexpr double kRefinedGridSlackPx = 0.2;
+
+// The RMS distance of a chessboard's cols x rows corners from the homography fitted to them.
+double grid_residual(const std::vector<cv::Point2f>& pts, int cols, int rows) {
+  std::vector<cv::Point2f> grid;
+  for (int r = 0; r < rows; ++r) {
+    for (int c = 0; c < cols; ++c) grid.emplace_back(static_cast<float>(c), static_cast<float>(r));
+  }
+  const cv::Mat H = cv::findHomography(grid, pts, 0);
+  if (H.empty()) return std::numeric_limits<double>::infinity();
+  std::vector<cv::Point2f> fitted;
+  cv::perspectiveTransform(grid, fitted, H);
+  double ss = 0;
+  for (size_t i = 0; i < pts.size(); ++i) ss += std::pow(cv::norm(fitted[i] - pts[i]), 2);
+  return std::sqrt(ss / static_cast<double>(pts.size()));
+}
+
+// OpenCV's sector-based chessboard search on `search`: the corners in
+// cv::findChessboardCorners' order, or none. The two detectors number the corners from opposite
+// ends. Where the board's two orders differ in colour (inner corners odd along one side, even
+// along the other), the quads' search starts at the corner whose first square (between corners
+// 0, 1, cols and cols + 1) is dark, the sector search at the one whose first square is light: 68
+// rendered frames and OpenCV's photos, every one. Elsewhere (a board the same after a half
+// turn) the quads' rule for an even x even board is applied: the last row below the first.
+std::vector<cv::Point2f> find_by_sectors(const cv::Mat& search, cv::Size pattern) {
+  std::vector<cv::Point2f> pts;
+  try {
+    if (!cv::findChessboardCornersSB(search, pattern, pts, 0)) return {};
+  } catch (const cv::Exception&) {
+    return {};  // too small an image for its pyramid: not found
+  }
+  const auto n = static_cast<size_t>(pattern.width) * static_cast<size_t>(pattern.height);
+  if (pts.size() != n) return {};
+  const auto w = static_cast<size_t>(pattern.width);
+  bool reverse = false;
+  if ((pattern.width + pattern.height) % 2 == 1) {
+    const cv::Point2f first = 0.25f * (pts[0] + pts[1] + pts[w] + pts[w + 1]);
+    const cv::Point2f next = first + (pts[1] - pts[0]);  // the square after it along the row
+    auto at = [&](const cv::Point2f& p) {
+      const int x = std::clamp(static_cast<int>(std::lround(p.x)), 0, search.cols - 1);
+      const int y = std::clamp(static_cast<int>(std::lround(p.y)), 0, search.rows - 1);
+      return search.at<uchar>(y, x);
+    };
+    reverse = at(first) > at(next);
+  } else {
+    reverse = pts[n - w].y < pts[0].y;
+  }
+  if (reverse) std::reverse(pts.begin(), pts.end());
+  return pts;
+}
+
 }  // namespace
 
 // Chessboard: OpenCV's detector, on a shrunk copy for large frames; the corners are refined at
@@ -614,7 +677,11 @@ std::vector<cv::Point2f> Board::detect_chessboard(const cv::Mat& gray, const Sea
   int k = std::max(where.shrink, search_factor(area, options));
   cv::Mat search = k > 1 ? shrink_for_search(area, k) : area;
   const int cap = quad_cap(options, (spec_.cols + 1) * (spec_.rows + 1));
-  // A busy frame is searched on a copy shrunk twice as much. (A search image under 32 px a side
+  // Frames with too few chessboard crossings are not searched (board/saddles.hpp). A frame that
+  // is not busy is searched by OpenCV's sector search first (find_by_sectors), bounded where the
+  // quads' search is not (a steeply tilted board under sensor noise), and by the quads' search
+  // only where the sector search finds no board. A busy frame is searched on a copy shrunk
+  // twice as much. (A search image under 32 px a side
   // has no room for a board at half size; it is cheap as it is.) Before that, on one shrunk four
   // times as much, where the texture of clutter is averaged away and a board of large squares
   // in front of it is found in a few milliseconds (OpenCV's search among the clutter's quads at
@@ -625,8 +692,46 @@ std::vector<cv::Point2f> Board::detect_chessboard(const cv::Mat& gray, const Sea
       chessboard_crossings(search) < chessboard_crossings_needed(spec_.cols, spec_.rows)) {
     return {};
   }
+  // The corners found on a copy shrunk by `f`, in the frame's pixels and refined there.
+  auto refined = [&](std::vector<cv::Point2f> found, int f) {
+    const cv::Point2f origin(static_cast<float>(where.region.x),
+                             static_cast<float>(where.region.y));
+    for (auto& p : found) p = (f > 1 ? to_full_resolution(p, f) : p) + origin;
+    int hw = options.subpix_half_window;
+    if (hw <= 0 && f == 1) hw = subpix_half_window(found, spec_.cols, spec_.rows);
+    if (hw <= 0) hw = subpix_half_window(found, spec_.cols, spec_.rows, std::max(11, 3 * f));
+    const std::vector<cv::Point2f> start = found;
+    cv::cornerSubPix(gray, found, cv::Size(hw, hw), cv::Size(-1, -1),
+                     cv::TermCriteria(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 50, 1e-3));
+    return std::pair{found, start};
+  };
+  // Busy frames (clutter's quads; see busy()) keep the quads' search on shrunk copies below,
+  // which is bounded there; the sector search took 134-328 ms on textures and dot grids that
+  // cost it 34-69 ms.
+  const bool is_busy =
+      cap > 0 && std::min(search.cols, search.rows) >= 32 && busy(half_size_contours(search), cap);
+  if (options.chessboard_sectors_first && !is_busy) {
+    // A copy of at most kSectorSearchMaxSide px a side first (31-60 ms at 640x360), then the
+    // search image itself if it is larger (134-176 ms at 1280x720).
+    const int max_side = std::max(area.cols, area.rows);
+    const int coarse = std::max(k, (max_side + DetectorOptions::kSectorSearchMaxSide - 1) /
+                                       DetectorOptions::kSectorSearchMaxSide);
+    for (const int f : {coarse, k}) {
+      const std::vector<cv::Point2f> found =
+          find_by_sectors(f == k ? search : shrink_for_search(area, f), pattern);
+      if (!found.empty()) {
+        const auto [corners, start] = refined(found, f);
+        if (grid_residual(corners, spec_.cols, spec_.rows) <=
+            2 * grid_residual(start, spec_.cols, spec_.rows) + kRefinedGridSlackPx) {
+          return corners;
+        }
+        break;  // the refinement lost the grid: the quads' search decides, as before
+      }
+      if (f == k) break;  // coarse == k: searched once
+    }
+  }
   bool found = false;
-  if (cap > 0 && std::min(search.cols, search.rows) >= 32 && busy(half_size_contours(search), cap)) {
+  if (is_busy) {
     const int quarter = 4 * k;
     if (std::min(area.cols / quarter, area.rows / quarter) >= kQuarterSearchMinSide &&
         cv::findChessboardCorners(shrink_for_search(area, quarter), pattern, pts, flags)) {
@@ -639,14 +744,7 @@ std::vector<cv::Point2f> Board::detect_chessboard(const cv::Mat& gray, const Sea
     }
   }
   if (!found && !cv::findChessboardCorners(search, pattern, pts, flags)) return {};
-  const cv::Point2f origin(static_cast<float>(where.region.x), static_cast<float>(where.region.y));
-  for (auto& p : pts) p = (k > 1 ? to_full_resolution(p, k) : p) + origin;
-  int hw = options.subpix_half_window;
-  if (hw <= 0 && k == 1) hw = subpix_half_window(pts, spec_.cols, spec_.rows);
-  if (hw <= 0) hw = subpix_half_window(pts, spec_.cols, spec_.rows, std::max(11, 3 * k));
-  cv::cornerSubPix(gray, pts, cv::Size(hw, hw), cv::Size(-1, -1),
-                   cv::TermCriteria(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 50, 1e-3));
-  return pts;
+  return refined(pts, k).first;
 }
 
 // ChArUco: markers (on a shrunk copy for large frames), OpenCV's corner interpolation and

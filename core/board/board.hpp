@@ -115,6 +115,14 @@ struct DetectorOptions {
   // took 0.4-1.9 s on a circuit board or a photo at 1280 px and found nothing; the test costs a
   // few milliseconds (docs/performance.md, "Scenes without a board"). false: always search.
   bool chessboard_precheck = true;
+  // Chessboard: OpenCV's sector-based search (cv::findChessboardCornersSB) runs first, on a
+  // copy of at most kSectorSearchMaxSide px a side and then on the search image, and OpenCV's
+  // search of quads only where it finds no board (and on busy frames). The quads' search is
+  // unbounded on a steeply tilted board under sensor noise (0.5-20 s a frame at 1280x720); the
+  // sector search took 134-176 ms at 1280x720 and found every board the quads' search found there
+  // (docs/performance.md, "Steep boards under noise"). false: the quads' search alone.
+  bool chessboard_sectors_first = true;
+  static constexpr int kSectorSearchMaxSide = 640;
 };
 
 // A rendered board: texel (u, v) (OpenCV pixel convention) shows board point

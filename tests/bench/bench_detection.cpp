@@ -278,28 +278,46 @@ int main(int argc, char** argv) {
           board_pose_at(board, Eigen::Vector3d(0.02, -0.01, c.distance), 0.4, c.tilt, 0.3));
     }
   }
+  // The chessboard with OpenCV's quads' search alone (DetectorOptions::chessboard_sectors_first
+  // off: the detector before the sector search came first), in the same run.
+  DetectorOptions quads_only;
+  quads_only.chessboard_sectors_first = false;
   for (const auto& [name, frame] : steep) {
-    const char* spec = name.rfind("chessboard", 0) == 0 ? kChessboard : kCharuco;
-    benchmark::RegisterBenchmark(("BM_DetectSteep/" + name).c_str(), BM_DetectFrame,
-                                 std::string(spec), &frame, DetectorOptions{})
-        ->Unit(benchmark::kMillisecond)
-        ->MeasureProcessCPUTime()
-        ->UseRealTime()
-        ->Iterations(1);
+    const bool chessboard = name.rfind("chessboard", 0) == 0;
+    const char* spec = chessboard ? kChessboard : kCharuco;
+    for (const bool quads : {false, true}) {
+      if (quads && !chessboard) continue;
+      benchmark::RegisterBenchmark(
+          ("BM_DetectSteep/" + name + (quads ? "/quads_only" : "")).c_str(), BM_DetectFrame,
+          std::string(spec), &frame, quads ? quads_only : DetectorOptions{})
+          ->Unit(benchmark::kMillisecond)
+          ->MeasureProcessCPUTime()
+          ->UseRealTime()
+          ->Iterations(1);
+    }
   }
-  // The chessboard's lattice pre-check (DetectorOptions::chessboard_precheck) off, in the same
-  // run: on the scenes, and on the board and noise frames at every size, where it is a cost.
+  // The chessboard's lattice pre-check (DetectorOptions::chessboard_precheck) off, and the
+  // quads' search alone, in the same run: on the scenes, and on the board and noise frames at
+  // every size (where the pre-check and the sector search are a cost); the quads' search alone
+  // also on the clutter.
   DetectorOptions no_precheck;
   no_precheck.chessboard_precheck = false;
-  for (const auto& [name, frame] : scenes)
-    register_frame("BM_DetectScene/chessboard/" + name + "/no_precheck", kChessboard, &frame,
-                   no_precheck);
-  for (int i = 0; i < static_cast<int>(sizes().size()); ++i) {
-    for (const bool noise : {true, false}) {
-      register_frame(std::string("BM_Detect/chessboard/") + sizes()[i].name +
-                         (noise ? "/noise" : "/board") + "/no_precheck",
-                     kChessboard, &scene(kChessboard, i, noise).image, no_precheck);
+  for (const auto& [variant, options] :
+       {std::pair{"/no_precheck", no_precheck}, std::pair{"/quads_only", quads_only}}) {
+    for (const auto& [name, frame] : scenes)
+      register_frame("BM_DetectScene/chessboard/" + name + variant, kChessboard, &frame, options);
+    for (int i = 0; i < static_cast<int>(sizes().size()); ++i) {
+      for (const bool noise : {true, false}) {
+        register_frame(std::string("BM_Detect/chessboard/") + sizes()[i].name +
+                           (noise ? "/noise" : "/board") + variant,
+                       kChessboard, &scene(kChessboard, i, noise).image, options);
+      }
     }
+  }
+  for (const auto& [name, frame] : clutter_frames()) {
+    if (name.find("_on_") == std::string::npos || name.rfind("chessboard", 0) == 0)
+      register_frame("BM_Detect/chessboard/1280x720/" + name + "/quads_only", kChessboard, &frame,
+                     quads_only);
   }
   benchmark::Initialize(&argc, argv);
   if (benchmark::ReportUnrecognizedArguments(argc, argv)) return 1;
