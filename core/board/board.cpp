@@ -247,8 +247,6 @@ cv::Mat to_gray(const cv::Mat& image) {
   return gray;
 }
 
-// Subpixel window half-size from the smallest distance between neighbouring corners: large
-// enough to see the saddle, small enough not to reach the next corner.
 // The shortest distance between neighbouring corners of a chessboard's cols x rows grid.
 double min_corner_spacing(const std::vector<cv::Point2f>& pts, int cols, int rows) {
   double min_d = 1e9;
@@ -262,6 +260,8 @@ double min_corner_spacing(const std::vector<cv::Point2f>& pts, int cols, int row
   return min_d;
 }
 
+// Subpixel window half-size from the smallest distance between neighbouring corners: large
+// enough to see the saddle, small enough not to reach the next corner.
 int subpix_half_window(const std::vector<cv::Point2f>& pts, int cols, int rows, int max_hw = 11) {
   return std::clamp(static_cast<int>(min_corner_spacing(pts, cols, rows) * 0.4), 2, max_hw);
 }
@@ -628,17 +628,17 @@ double grid_residual(const std::vector<cv::Point2f>& pts, int cols, int rows) {
   return std::sqrt(ss / static_cast<double>(pts.size()));
 }
 
-// OpenCV's sector-based chessboard search on `search`: the corners in
-// cv::findChessboardCorners' order, or none. The two detectors number the corners from opposite
-// ends. Where the board's two orders differ in colour (inner corners odd along one side, even
-// along the other), the quads' search starts at the corner whose first square (between corners
-// 0, 1, cols and cols + 1) is dark, the sector search at the one whose first square is light: 68
-// rendered frames and OpenCV's photos, every one. Elsewhere (a board the same after a half
-// turn) the quads' rule for an even x even board is applied: the last row below the first.
-std::vector<cv::Point2f> find_by_sectors(const cv::Mat& search, cv::Size pattern) {
+// OpenCV's sector-based chessboard search on `search` (cv::findChessboardCornersSB with `flags`):
+// the corners in cv::findChessboardCorners' order, or none. The two detectors number the corners
+// from opposite ends. Where the board's two orders differ in colour (inner corners odd along one
+// side, even along the other), the quads' search starts at the corner whose first square (between
+// corners 0, 1, cols and cols + 1) is dark, the sector search at the one whose first square is
+// light: 68 rendered frames and OpenCV's photos, every one. Elsewhere (a board the same after a
+// half turn) the quads' rule for an even x even board is applied: the last row below the first.
+std::vector<cv::Point2f> find_by_sectors(const cv::Mat& search, cv::Size pattern, int flags) {
   std::vector<cv::Point2f> pts;
   try {
-    if (!cv::findChessboardCornersSB(search, pattern, pts, 0)) return {};
+    if (!cv::findChessboardCornersSB(search, pattern, pts, flags)) return {};
   } catch (const cv::Exception&) {
     return {};  // too small an image for its pyramid: not found
   }
@@ -649,10 +649,13 @@ std::vector<cv::Point2f> find_by_sectors(const cv::Mat& search, cv::Size pattern
   if ((pattern.width + pattern.height) % 2 == 1) {
     const cv::Point2f first = 0.25f * (pts[0] + pts[1] + pts[w] + pts[w + 1]);
     const cv::Point2f next = first + (pts[1] - pts[0]);  // the square after it along the row
+    // The mean of the 3x3 pixels about a square's centre (clipped to the image).
     auto at = [&](const cv::Point2f& p) {
       const int x = std::clamp(static_cast<int>(std::lround(p.x)), 0, search.cols - 1);
       const int y = std::clamp(static_cast<int>(std::lround(p.y)), 0, search.rows - 1);
-      return search.at<uchar>(y, x);
+      const cv::Rect patch =
+          cv::Rect(x - 1, y - 1, 3, 3) & cv::Rect(0, 0, search.cols, search.rows);
+      return cv::mean(search(patch))[0];
     };
     reverse = at(first) > at(next);
   } else {
@@ -678,57 +681,71 @@ std::vector<cv::Point2f> Board::detect_chessboard(const cv::Mat& gray, const Sea
   cv::Mat search = k > 1 ? shrink_for_search(area, k) : area;
   const int cap = quad_cap(options, (spec_.cols + 1) * (spec_.rows + 1));
   // Frames with too few chessboard crossings are not searched (board/saddles.hpp). A frame that
-  // is not busy is searched by OpenCV's sector search first (find_by_sectors), bounded where the
-  // quads' search is not (a steeply tilted board under sensor noise), and by the quads' search
-  // only where the sector search finds no board. A busy frame is searched on a copy shrunk
-  // twice as much. (A search image under 32 px a side
-  // has no room for a board at half size; it is cheap as it is.) Before that, on one shrunk four
-  // times as much, where the texture of clutter is averaged away and a board of large squares
-  // in front of it is found in a few milliseconds (OpenCV's search among the clutter's quads at
-  // half size took 110-180 ms; docs/performance.md, "Busy frames"); only if no board is found
-  // there (a board of small squares) does the half-size search run: first on the copy with the
-  // clutter's fine dark detail closed (closed_for_search), then on the plain copy.
+  // is not busy is searched by OpenCV's sector search alone (find_by_sectors), which is bounded
+  // where the quads' search is not (a steeply tilted board, or one partly out of view, under
+  // sensor noise). A busy frame keeps the quads' search: first on a copy shrunk four times as
+  // much as the search image, where the texture of clutter is averaged away and a board of large
+  // squares in front of it is found in a few milliseconds (OpenCV's search among the clutter's
+  // quads at half size took 110-180 ms; docs/performance.md, "Busy frames"); only if no board is
+  // found there (a board of small squares) on one shrunk twice as much, with the clutter's fine
+  // dark detail closed (closed_for_search), then on the plain copy. (A search image under 32 px
+  // a side has no room for a board at half size; it is cheap as it is, and never busy.)
   if (options.chessboard_precheck &&
       chessboard_crossings(search) < chessboard_crossings_needed(spec_.cols, spec_.rows)) {
     return {};
   }
   // The corners found on a copy shrunk by `f`, in the frame's pixels and refined there.
-  auto refined = [&](std::vector<cv::Point2f> found, int f) {
+  auto to_frame = [&](std::vector<cv::Point2f> found, int f) {
     const cv::Point2f origin(static_cast<float>(where.region.x),
                              static_cast<float>(where.region.y));
     for (auto& p : found) p = (f > 1 ? to_full_resolution(p, f) : p) + origin;
+    return found;
+  };
+  auto refine = [&](std::vector<cv::Point2f>& corners, int f) {
     int hw = options.subpix_half_window;
-    if (hw <= 0 && f == 1) hw = subpix_half_window(found, spec_.cols, spec_.rows);
-    if (hw <= 0) hw = subpix_half_window(found, spec_.cols, spec_.rows, std::max(11, 3 * f));
-    const std::vector<cv::Point2f> start = found;
-    cv::cornerSubPix(gray, found, cv::Size(hw, hw), cv::Size(-1, -1),
+    if (hw <= 0 && f == 1) hw = subpix_half_window(corners, spec_.cols, spec_.rows);
+    if (hw <= 0) hw = subpix_half_window(corners, spec_.cols, spec_.rows, std::max(11, 3 * f));
+    cv::cornerSubPix(gray, corners, cv::Size(hw, hw), cv::Size(-1, -1),
                      cv::TermCriteria(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 50, 1e-3));
-    return std::pair{found, start};
   };
   // Busy frames (clutter's quads; see busy()) keep the quads' search on shrunk copies below,
   // which is bounded there; the sector search took 134-328 ms on textures and dot grids that
   // cost it 34-69 ms.
   const bool is_busy =
       cap > 0 && std::min(search.cols, search.rows) >= 32 && busy(half_size_contours(search), cap);
-  if (options.chessboard_sectors_first && !is_busy) {
-    // A copy of at most kSectorSearchMaxSide px a side first (31-60 ms at 640x360), then the
-    // search image itself if it is larger (134-176 ms at 1280x720).
+  if (options.chessboard_sector_search && !is_busy) {
+    // Three tries, each bounded: a copy of at most kSectorSearchMaxSide px a side (31-60 ms at
+    // 640x360), the search image itself if it is larger (134-176 ms at 1280x720; boards of
+    // small squares), and the copy again with its histogram equalised (OpenCV's
+    // CALIB_CB_NORMALIZE_IMAGE; four of OpenCV's photos are found only so, five of 72 steep
+    // rendered boards only without). The quads' search does not follow: on a board partly out
+    // of view under sensor noise it took 1-8 s a frame at 1280x720 and found nothing
+    // (docs/performance.md, "Boards partly out of view").
     const int max_side = std::max(area.cols, area.rows);
     const int coarse = std::max(k, (max_side + DetectorOptions::kSectorSearchMaxSide - 1) /
                                        DetectorOptions::kSectorSearchMaxSide);
-    for (const int f : {coarse, k}) {
+    const cv::Mat coarse_copy = coarse == k ? search : shrink_for_search(area, coarse);
+    struct Try {
+      int shrink;
+      int flags;
+    };
+    std::vector<Try> tries = {{coarse, 0}};
+    if (coarse != k) tries.push_back({k, 0});
+    tries.push_back({coarse, cv::CALIB_CB_NORMALIZE_IMAGE});
+    for (const Try& t : tries) {
       const std::vector<cv::Point2f> found =
-          find_by_sectors(f == k ? search : shrink_for_search(area, f), pattern);
-      if (!found.empty()) {
-        const auto [corners, start] = refined(found, f);
-        if (grid_residual(corners, spec_.cols, spec_.rows) <=
-            2 * grid_residual(start, spec_.cols, spec_.rows) + kRefinedGridSlackPx) {
-          return corners;
-        }
-        break;  // the refinement lost the grid: the quads' search decides, as before
+          find_by_sectors(t.shrink == k ? search : coarse_copy, pattern, t.flags);
+      if (found.empty()) continue;
+      const std::vector<cv::Point2f> start = to_frame(found, t.shrink);
+      std::vector<cv::Point2f> corners = start;
+      refine(corners, t.shrink);
+      // A refinement that lost the grid (kRefinedGridSlackPx) is dropped; the next try decides.
+      if (grid_residual(corners, spec_.cols, spec_.rows) <=
+          2 * grid_residual(start, spec_.cols, spec_.rows) + kRefinedGridSlackPx) {
+        return corners;
       }
-      if (f == k) break;  // coarse == k: searched once
     }
+    return {};
   }
   bool found = false;
   if (is_busy) {
@@ -744,7 +761,9 @@ std::vector<cv::Point2f> Board::detect_chessboard(const cv::Mat& gray, const Sea
     }
   }
   if (!found && !cv::findChessboardCorners(search, pattern, pts, flags)) return {};
-  return refined(pts, k).first;
+  pts = to_frame(pts, k);
+  refine(pts, k);
+  return pts;
 }
 
 // ChArUco: markers (on a shrunk copy for large frames), OpenCV's corner interpolation and

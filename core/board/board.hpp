@@ -115,13 +115,15 @@ struct DetectorOptions {
   // took 0.4-1.9 s on a circuit board or a photo at 1280 px and found nothing; the test costs a
   // few milliseconds (docs/performance.md, "Scenes without a board"). false: always search.
   bool chessboard_precheck = true;
-  // Chessboard: OpenCV's sector-based search (cv::findChessboardCornersSB) runs first, on a
-  // copy of at most kSectorSearchMaxSide px a side and then on the search image, and OpenCV's
-  // search of quads only where it finds no board (and on busy frames). The quads' search is
-  // unbounded on a steeply tilted board under sensor noise (0.5-20 s a frame at 1280x720); the
-  // sector search took 134-176 ms at 1280x720 and found every board the quads' search found there
-  // (docs/performance.md, "Steep boards under noise"). false: the quads' search alone.
-  bool chessboard_sectors_first = true;
+  // Chessboard: frames that are not busy are searched by OpenCV's sector-based search
+  // (cv::findChessboardCornersSB) alone: on a copy of at most kSectorSearchMaxSide px a side,
+  // then on the search image, then on the copy with its histogram equalised. OpenCV's search of
+  // quads runs only on busy frames, where it is bounded. The quads' search is unbounded on a
+  // steeply tilted board under sensor noise (0.5-20 s a frame at 1280x720) and on a board partly
+  // out of view (1-8 s); the sector search took 134-176 ms at 1280x720 and found every board the
+  // quads' search found there (docs/performance.md, "Steep boards under noise" and "Boards partly
+  // out of view"). false: the quads' search alone, on every frame.
+  bool chessboard_sector_search = true;
   static constexpr int kSectorSearchMaxSide = 640;
 };
 

@@ -5,7 +5,9 @@
 // 1280x720 frames (a checkerboard texture of 10 or 14 px squares, grids of 12 or 16 px dots 8 px
 // apart, the board in front of the 10 px checkerboard) and fuzz_session_feed's slow inputs
 // (tests/fuzz/crashes/fuzz_session_feed/slow-*), issue 16's "cluttered frames"; the 1280x720 board
-// and noise frames again with the clutter rules off (/no_cap), for their cost in one run.
+// and noise frames again with the clutter rules off (/no_cap), for their cost in one run. Then
+// steep boards and boards partly out of view under sensor noise (BM_DetectSteep,
+// BM_DetectPartial), the chessboard also with the quads' search alone (/quads_only).
 //   taskset -c 0 build/bin/bench_detection --benchmark_repetitions=3
 //       --benchmark_report_aggregates_only=true            (docs/performance.md)
 // The frames are rendered once, on first use (a distortion-free lens; the 48 MP board frame is a
@@ -278,22 +280,55 @@ int main(int argc, char** argv) {
           board_pose_at(board, Eigen::Vector3d(0.02, -0.01, c.distance), 0.4, c.tilt, 0.3));
     }
   }
-  // The chessboard with OpenCV's quads' search alone (DetectorOptions::chessboard_sectors_first
+  // A board partly out of view under sensor noise (noise 5, blur 0.8 px, on the C525
+  // reference, 1280x720): a third or two thirds of the board beyond the image's right edge, the
+  // view while the operator brings the board in. OpenCV's quads' search finds no board there and
+  // takes seconds; one iteration each.
+  static std::map<std::string, cv::Mat> partial;
+  for (const char* spec : {kChessboard, kCharuco}) {
+    const Board board(BoardSpec::parse(spec));
+    const std::string kind = std::string(spec).substr(0, std::string(spec).find(':'));
+    const CameraModel cam = c525_reference_model();
+    struct Case {
+      const char* name;
+      double distance, tilt, out;
+    };
+    for (const Case& c :
+         {Case{"0.45m_third_out", 0.45, 0.0, 0.3}, Case{"0.9m_tilt34_third_out", 0.9, 0.6, 0.3},
+          Case{"1.8m_two_thirds_out", 1.8, 0.0, 0.7}}) {
+      RenderOptions ro;
+      ro.blur_sigma_px = 0.8;
+      ro.noise_sigma = 5;
+      ro.supersample = 1;
+      SyntheticCamera sc(cam, board, ro);
+      // The board's centre beyond the right edge of the view by `out` of its width less half.
+      const double half_view = 0.5 * cam.width() / cam.fx() * c.distance;
+      const int squares = board.spec().cols + (board.spec().type == BoardType::kCharuco ? 0 : 1);
+      const double width = squares * board.spec().square_length_m;
+      const double x = half_view + width * (c.out - 0.5);
+      partial[kind + "/" + c.name] =
+          sc.render(board_pose_at(board, Eigen::Vector3d(x, 0.02, c.distance), 0.4, c.tilt, 0.3));
+    }
+  }
+  // The chessboard with OpenCV's quads' search alone (DetectorOptions::chessboard_sector_search
   // off: the detector before the sector search came first), in the same run.
   DetectorOptions quads_only;
-  quads_only.chessboard_sectors_first = false;
-  for (const auto& [name, frame] : steep) {
-    const bool chessboard = name.rfind("chessboard", 0) == 0;
-    const char* spec = chessboard ? kChessboard : kCharuco;
-    for (const bool quads : {false, true}) {
-      if (quads && !chessboard) continue;
-      benchmark::RegisterBenchmark(
-          ("BM_DetectSteep/" + name + (quads ? "/quads_only" : "")).c_str(), BM_DetectFrame,
-          std::string(spec), &frame, quads ? quads_only : DetectorOptions{})
-          ->Unit(benchmark::kMillisecond)
-          ->MeasureProcessCPUTime()
-          ->UseRealTime()
-          ->Iterations(1);
+  quads_only.chessboard_sector_search = false;
+  for (const auto& [group, frames] :
+       {std::pair{"BM_DetectSteep/", &steep}, std::pair{"BM_DetectPartial/", &partial}}) {
+    for (const auto& [name, frame] : *frames) {
+      const bool chessboard = name.rfind("chessboard", 0) == 0;
+      const char* spec = chessboard ? kChessboard : kCharuco;
+      for (const bool quads : {false, true}) {
+        if (quads && !chessboard) continue;
+        benchmark::RegisterBenchmark((group + name + (quads ? "/quads_only" : "")).c_str(),
+                                     BM_DetectFrame, std::string(spec), &frame,
+                                     quads ? quads_only : DetectorOptions{})
+            ->Unit(benchmark::kMillisecond)
+            ->MeasureProcessCPUTime()
+            ->UseRealTime()
+            ->Iterations(1);
+      }
     }
   }
   // The chessboard's lattice pre-check (DetectorOptions::chessboard_precheck) off, and the

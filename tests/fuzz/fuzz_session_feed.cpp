@@ -2,9 +2,11 @@
 // pixel-format conversion, board detection and the engine's first steps on arbitrary pixels),
 // then posecal_session_last_frame and posecal_session_render_overlay on host images of two formats.
 //
-// Input: byte 0-1 width-1, 2-3 height-1 (each taken modulo 256: frames up to 256x256), byte 4
-// the pixel format (mod 3), byte 5 extra stride bytes (mod 8), byte 6 the number of frames fed
-// (1..4, all the same size); the rest are the pixels, repeated to fill the frame. Fails on a
+// Input: byte 0-1 width-1, 2-3 height-1 (each taken modulo 256: frames up to 256x256; byte 1
+// odd: a chessboard session, chessboard:9x6:0.025, whose detector is OpenCV's sector search,
+// else the default ChArUco board), byte 4 the pixel format (mod 3), byte 5 extra stride bytes
+// (mod 8), byte 6 the number of frames fed (1..4, all the same size); the rest are the pixels,
+// repeated to fill the frame. Fails on a
 // crash, a sanitizer report, or a call that does not succeed on a frame the engine accepts.
 #include <cstddef>
 #include <cstdint>
@@ -57,8 +59,10 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
   }
 
   posecal_session* s = nullptr;
-  if (posecal_session_open(external_context(), "external", "{\"view_candidates\": 0}", &s) !=
-      POSECAL_OK) {
+  const bool chessboard = data[1] % 2 == 1;
+  const char* config = chessboard ? "{\"view_candidates\": 0, \"target\": \"chessboard:9x6:0.025\"}"
+                                  : "{\"view_candidates\": 0}";
+  if (posecal_session_open(external_context(), "external", config, &s) != POSECAL_OK) {
     std::abort();
   }
   // The engine needs at least 16x16 pixels (core/select/engine.cpp; posecal.h promises 1..65535

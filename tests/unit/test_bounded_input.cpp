@@ -300,17 +300,20 @@ TEST(BoundedDetection, ScenesWithoutABoardAreRejectedBeforeTheChessboardSearch) 
 // (Boards tilted 60 degrees cost the quads' search 2-26 s a frame at 1280x720 with or without
 // the pre-check: docs/performance.md, "Steep boards under noise".)
 //
-// And the detector as it is, the sector search first (DetectorOptions::chessboard_sectors_first),
-// finds each of these boards too, its corners in the same order, within 0.01 px after the
-// refinement in all but 2 of the frames: the refinement starts from the other search's corners,
-// and on a blurred photo (left13.jpg) and a rendered board of 15 px squares under noise 10 and
-// blur 2 px they end up to 0.7 px apart (the rendered one 0.28 px RMS from the true corners now,
-// 0.47 px before). (It also finds boards the pre-check turns away before the quads' search, which
-// cannot find them: 8 px squares tilted 35 degrees give 4 crossings.)
+// And the detector as it is, the sector search alone on frames that are not busy
+// (DetectorOptions::chessboard_sector_search), finds each of these boards too, its corners in
+// the same order, within 0.01 px after the refinement in all but 4 of the frames: the refinement
+// starts from the other search's corners. On a blurred photo (left13.jpg) and a rendered board of
+// 15 px squares under noise 10 and blur 2 px they end up to 0.7 px apart (the rendered one 0.28
+// px RMS from the true corners now, 0.47 px before); on two photos found only with the histogram
+// equalised (right01.jpg, right04.jpg), 0.04-0.1 px (the calibration on the 13 right photos:
+// RMS 0.2774 px, 0.2776 with the quads' search). (It also finds boards the pre-check turns away
+// before the quads' search, which cannot find them: 8 px squares tilted 35 degrees give 4
+// crossings.)
 TEST(BoundedDetection, TheChessboardPrecheckKeepsEveryBoard) {
   const Board board(BoardSpec::parse("chessboard:9x6:0.025"));
   DetectorOptions quads_only;  // the pre-check, then the quads' search alone
-  quads_only.chessboard_sectors_first = false;
+  quads_only.chessboard_sector_search = false;
   DetectorOptions without = quads_only;  // the quads' search alone
   without.chessboard_precheck = false;
   int compared = 0;
@@ -324,9 +327,9 @@ TEST(BoundedDetection, TheChessboardPrecheckKeepsEveryBoard) {
     EXPECT_EQ(q.ids, o.ids) << name << ": " << crossings << " crossings";
     for (size_t i = 0; i < std::min(q.size(), o.size()); ++i)
       EXPECT_EQ(q.image_points[i], o.image_points[i]) << name << " corner " << i;
-    // The detector as it is: the sector search first.
+    // The detector as it is: the sector search alone.
     const Detection d = board.detect(frame);
-    EXPECT_EQ(d.ids, o.ids) << name << ": the sector search first";
+    EXPECT_EQ(d.ids, o.ids) << name << ": the sector search";
     double worst = 0;
     for (size_t i = 0; i < std::min(d.size(), o.size()); ++i)
       worst = std::max(worst, cv::norm(d.image_points[i] - o.image_points[i]));
@@ -374,7 +377,7 @@ TEST(BoundedDetection, TheChessboardPrecheckKeepsEveryBoard) {
     }
   }
   std::printf("%d frames where OpenCV finds the board, %d of them rendered\n", compared, rendered);
-  EXPECT_LE(apart, 2);
+  EXPECT_LE(apart, 4);
   EXPECT_GE(compared, 60);
   EXPECT_GE(rendered, 20);
 }
@@ -417,7 +420,7 @@ TEST(BoundedDetection, SteepNoisyChessboardsAreFoundBySectors) {
 TEST(BoundedDetection, TheSectorSearchNumbersCornersAsTheQuadsSearch) {
   const CameraModel cam = c525_reference_model();
   DetectorOptions quads_only;
-  quads_only.chessboard_sectors_first = false;
+  quads_only.chessboard_sector_search = false;
   for (const char* spec : {"chessboard:9x6:0.025", "chessboard:6x9:0.025", "chessboard:8x6:0.025",
                            "chessboard:7x5:0.03"}) {
     const Board board(BoardSpec::parse(spec));
