@@ -628,6 +628,14 @@ double grid_residual(const std::vector<cv::Point2f>& pts, int cols, int rows) {
   return std::sqrt(ss / static_cast<double>(pts.size()));
 }
 
+// The sector search on a copy of at most DetectorOptions::kSectorSearchMaxSide px finds boards
+// whose squares are this large there (in the pre-check's lattice: chessboard_lattice's spacing):
+// among 288 rendered 1280x720 frames (noise 2-12 grey levels, blur 0.8-2 px, 0.4-3 m, tilt
+// 0-66 degrees, half of them partly out of view), every board that only the search at full
+// resolution found had squares of 6-12 px there, 3-6 px on the copy (docs/performance.md,
+// "Boards partly out of view").
+constexpr int kCoarseSquareMinPx = 8;
+
 // OpenCV's sector-based chessboard search on `search` (cv::findChessboardCornersSB with `flags`):
 // the corners in cv::findChessboardCorners' order, or none. The two detectors number the corners
 // from opposite ends. Where the board's two orders differ in colour (inner corners odd along one
@@ -667,9 +675,10 @@ std::vector<cv::Point2f> find_by_sectors(const cv::Mat& search, cv::Size pattern
 
 }  // namespace
 
-// Chessboard: OpenCV's detector, on a shrunk copy for large frames; the corners are refined at
-// full resolution with a window from the corner spacing (wide enough to reach the saddle from
-// the shrunk copy's estimate, which is off by up to about half the factor).
+// Chessboard: a lattice pre-check, then OpenCV's sector search (or, on busy frames, its quads'
+// search) on shrunk copies; the corners are refined at full resolution with a window from the
+// corner spacing (wide enough to reach the saddle from a shrunk copy's estimate, which is off by
+// up to about half the factor).
 std::vector<cv::Point2f> Board::detect_chessboard(const cv::Mat& gray, const Search& where,
                                                   const DetectorOptions& options) const {
   std::vector<cv::Point2f> pts;
@@ -690,9 +699,10 @@ std::vector<cv::Point2f> Board::detect_chessboard(const cv::Mat& gray, const Sea
   // found there (a board of small squares) on one shrunk twice as much, with the clutter's fine
   // dark detail closed (closed_for_search), then on the plain copy. (A search image under 32 px
   // a side has no room for a board at half size; it is cheap as it is, and never busy.)
-  if (options.chessboard_precheck &&
-      chessboard_crossings(search) < chessboard_crossings_needed(spec_.cols, spec_.rows)) {
-    return {};
+  ChessboardLattice lattice;  // not examined without the pre-check: spacing 0, every try runs
+  if (options.chessboard_precheck) {
+    lattice = chessboard_lattice(search);
+    if (lattice.crossings < chessboard_crossings_needed(spec_.cols, spec_.rows)) return {};
   }
   // The corners found on a copy shrunk by `f`, in the frame's pixels and refined there.
   auto to_frame = [&](std::vector<cv::Point2f> found, int f) {
@@ -714,25 +724,29 @@ std::vector<cv::Point2f> Board::detect_chessboard(const cv::Mat& gray, const Sea
   const bool is_busy =
       cap > 0 && std::min(search.cols, search.rows) >= 32 && busy(half_size_contours(search), cap);
   if (options.chessboard_sector_search && !is_busy) {
-    // Three tries, each bounded: a copy of at most kSectorSearchMaxSide px a side (31-60 ms at
-    // 640x360), the search image itself if it is larger (134-176 ms at 1280x720; boards of
-    // small squares), and the copy again with its histogram equalised (OpenCV's
+    // Up to three tries, each bounded: a copy of at most kSectorSearchMaxSide px a side (21-84
+    // ms at 640x360), the search image itself if it is larger (100-190 ms at 1280x720; boards
+    // of small squares), and the copy again with its histogram equalised (OpenCV's
     // CALIB_CB_NORMALIZE_IMAGE; four of OpenCV's photos are found only so, five of 72 steep
-    // rendered boards only without). The quads' search does not follow: on a board partly out
-    // of view under sensor noise it took 1-8 s a frame at 1280x720 and found nothing
-    // (docs/performance.md, "Boards partly out of view").
+    // rendered boards only without). The search image is skipped where the pre-check's lattice
+    // shows squares of kCoarseSquareMinPx or more on the copy. The quads' search does not
+    // follow: on a board partly out of view under sensor noise it took 1-8 s a frame at 1280x720
+    // and found nothing (docs/performance.md, "Boards partly out of view").
     const int max_side = std::max(area.cols, area.rows);
     const int coarse = std::max(k, (max_side + DetectorOptions::kSectorSearchMaxSide - 1) /
                                        DetectorOptions::kSectorSearchMaxSide);
     const cv::Mat coarse_copy = coarse == k ? search : shrink_for_search(area, coarse);
+    const bool fine_needed =
+        coarse != k && lattice.spacing_px * k / coarse < static_cast<double>(kCoarseSquareMinPx);
     struct Try {
       int shrink;
       int flags;
+      bool run;
     };
-    std::vector<Try> tries = {{coarse, 0}};
-    if (coarse != k) tries.push_back({k, 0});
-    tries.push_back({coarse, cv::CALIB_CB_NORMALIZE_IMAGE});
+    const std::array<Try, 3> tries = {Try{coarse, 0, true}, Try{k, 0, fine_needed},
+                                      Try{coarse, cv::CALIB_CB_NORMALIZE_IMAGE, true}};
     for (const Try& t : tries) {
+      if (!t.run) continue;
       const std::vector<cv::Point2f> found =
           find_by_sectors(t.shrink == k ? search : coarse_copy, pattern, t.flags);
       if (found.empty()) continue;

@@ -19,6 +19,16 @@ namespace posecal {
 // frame under 48 px a side (the smallest level examined): such frames are searched.
 int chessboard_crossings(const cv::Mat& gray);
 
+// chessboard_crossings' count and, from the level that gave it, the median over the crossings
+// of the shorter of their two axes, in `gray`'s pixels: the distance to the nearest crossing of
+// opposite polarity along the board's more foreshortened direction, a square's shorter side
+// (within 4% on rendered boards of 6-60 px squares). 0 without crossings and for kCannotTell.
+struct ChessboardLattice {
+  int crossings = 0;
+  double spacing_px = 0;
+};
+ChessboardLattice chessboard_lattice(const cv::Mat& gray);
+
 inline constexpr int kMaxSaddles = 600;
 inline constexpr int kCannotTell = 1 << 20;
 

@@ -6,18 +6,9 @@
 #include <opencv2/imgproc.hpp>
 #include <vector>
 
+#include "common/statistics.hpp"
+
 namespace posecal {
-
-namespace {
-
-double median(std::vector<double> v) {
-  if (v.empty()) return 0;
-  const auto mid = v.begin() + static_cast<std::ptrdiff_t>(v.size() / 2);
-  std::nth_element(v.begin(), mid, v.end());
-  return *mid;
-}
-
-}  // namespace
 
 TrackingPlan plan_tracking(const Board& board, const Detection& last, cv::Size frame,
                            const TrackingOptions& options, cv::Point2d motion) {

@@ -6,9 +6,11 @@
 #include <limits>
 #include <map>
 #include <opencv2/imgproc.hpp>
+#include <utility>
 
 #include "calib/pose_estimation.hpp"
 #include "common/error.hpp"
+#include "common/statistics.hpp"
 #include "select/engine_internal.hpp"
 
 namespace posecal {
@@ -435,8 +437,7 @@ std::vector<size_t> CalibrationEngine::Impl::outlier_corners(const CalibrationRe
       if (f == frame) last.push_back(all.back());
     }
   }
-  std::nth_element(all.begin(), all.begin() + static_cast<long>(all.size() / 2), all.end());
-  const double sigma = all[all.size() / 2] / 1.177;
+  const double sigma = median(std::move(all)) / 1.177;
   const double limit = std::max(kOutlierFloorPx, kOutlierSigmas * sigma);
   // The worst corners first: one bad corner pulls the pose, and with it its neighbours' residuals
   // past the limit; those above half the worst go this round, the rest are judged again after.

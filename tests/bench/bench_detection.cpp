@@ -52,6 +52,9 @@ const std::vector<FrameSize>& sizes() {
 const char* kChessboard = "chessboard:9x6:0.025";
 const char* kCharuco = "charuco:9x6:0.028:0.0182:DICT_4X4_50";
 
+// "chessboard" or "charuco": a board spec's type, as the benchmarks' names show it.
+std::string board_kind(const std::string& spec) { return spec.substr(0, spec.find(':')); }
+
 struct Scene {
   cv::Mat image;
   std::vector<cv::Point2d> truth;  // true corner projections (board frames only)
@@ -157,7 +160,7 @@ const std::map<std::string, cv::Mat>& clutter_frames() {
       ro.blur_sigma_px = 0.8;
       SyntheticCamera sc(cam, board, ro);
       const Pose p = board_pose_at(board, Eigen::Vector3d(0.01, -0.005, 0.40), 0.7, 0.4, 0.2);
-      const std::string kind = std::string(spec).substr(0, std::string(spec).find(':'));
+      const std::string kind = board_kind(spec);
       f[kind + "_on_checkerboard10"] = render_in_front_of(sc, p, f["checkerboard10"]);
       if (kind == "chessboard") {
         // The same board farther away: squares of about 32 px, too small for the quarter-size
@@ -169,6 +172,19 @@ const std::map<std::string, cv::Mat>& clutter_frames() {
     return f;
   }();
   return frames;
+}
+
+// The board on the C525 reference (1280x720) with its centre at `centre` (camera frame, metres),
+// tilted by `tilt` radians about an in-plane axis at 0.4 rad and rolled 0.3 rad, under sensor
+// noise of `noise` grey levels and blur `blur` px, without supersampling.
+cv::Mat render_on_c525(const Board& board, double noise, double blur, const Eigen::Vector3d& centre,
+                       double tilt) {
+  RenderOptions ro;
+  ro.blur_sigma_px = blur;
+  ro.noise_sigma = noise;
+  ro.supersample = 1;
+  SyntheticCamera sc(c525_reference_model(), board, ro);
+  return sc.render(board_pose_at(board, centre, 0.4, tilt, 0.3));
 }
 
 void BM_DetectFrame(benchmark::State& state, std::string spec, const cv::Mat* frame,
@@ -195,7 +211,7 @@ void register_frame(const std::string& name, const std::string& spec, const cv::
 
 int main(int argc, char** argv) {
   for (const char* spec : {kChessboard, kCharuco}) {
-    const std::string kind = std::string(spec).substr(0, std::string(spec).find(':'));
+    const std::string kind = board_kind(spec);
     for (int i = 0; i < static_cast<int>(sizes().size()); ++i) {
       for (const bool noise : {true, false}) {
         const std::string name =
@@ -212,14 +228,14 @@ int main(int argc, char** argv) {
   DetectorOptions no_cap;
   no_cap.max_candidate_quads = 0;
   for (const char* spec : {kChessboard, kCharuco}) {
-    const std::string kind = std::string(spec).substr(0, std::string(spec).find(':'));
+    const std::string kind = board_kind(spec);
     for (const bool noise : {true, false}) {
       register_frame("BM_Detect/" + kind + "/1280x720/" + (noise ? "noise" : "board") + "/no_cap",
                      spec, &scene(spec, 0, noise).image, no_cap);
     }
   }
   for (const char* spec : {kChessboard, kCharuco}) {
-    const std::string kind = std::string(spec).substr(0, std::string(spec).find(':'));
+    const std::string kind = board_kind(spec);
     for (const auto& [name, frame] : clutter_frames()) {
       const bool board = name.find("_on_") != std::string::npos;
       if (!board || name.rfind(kind, 0) == 0)
@@ -251,9 +267,8 @@ int main(int argc, char** argv) {
     cv::resize(image, scenes[std::string(file) + "@1280"], cv::Size(), s, s, cv::INTER_CUBIC);
   }
   for (const char* spec : {kChessboard, kCharuco}) {
-    const std::string kind = std::string(spec).substr(0, std::string(spec).find(':'));
     for (const auto& [name, frame] : scenes)
-      register_frame("BM_DetectScene/" + kind + "/" + name, spec, &frame);
+      register_frame("BM_DetectScene/" + board_kind(spec) + "/" + name, spec, &frame);
   }
   // Steeply tilted boards under sensor noise, on the C525 reference (1280x720), rendered without
   // supersampling: OpenCV's chessboard search is not bounded there (seconds a frame), with or
@@ -262,8 +277,6 @@ int main(int argc, char** argv) {
   static std::map<std::string, cv::Mat> steep;
   for (const char* spec : {kChessboard, kCharuco}) {
     const Board board(BoardSpec::parse(spec));
-    const std::string kind = std::string(spec).substr(0, std::string(spec).find(':'));
-    const CameraModel cam = c525_reference_model();
     struct Case {
       const char* name;
       double noise, blur, distance, tilt;
@@ -271,13 +284,8 @@ int main(int argc, char** argv) {
     for (const Case& c : {Case{"noise10_blur2_0.9m_tilt60", 10, 2.0, 0.9, 1.05},
                           Case{"noise5_blur0.8_1.8m_tilt60", 5, 0.8, 1.8, 1.05},
                           Case{"noise10_blur0.8_1.8m_tilt34", 10, 0.8, 1.8, 0.6}}) {
-      RenderOptions ro;
-      ro.blur_sigma_px = c.blur;
-      ro.noise_sigma = c.noise;
-      ro.supersample = 1;
-      SyntheticCamera sc(cam, board, ro);
-      steep[kind + "/" + c.name] = sc.render(
-          board_pose_at(board, Eigen::Vector3d(0.02, -0.01, c.distance), 0.4, c.tilt, 0.3));
+      steep[board_kind(spec) + "/" + c.name] =
+          render_on_c525(board, c.noise, c.blur, Eigen::Vector3d(0.02, -0.01, c.distance), c.tilt);
     }
   }
   // A board partly out of view under sensor noise (noise 5, blur 0.8 px, on the C525
@@ -287,7 +295,6 @@ int main(int argc, char** argv) {
   static std::map<std::string, cv::Mat> partial;
   for (const char* spec : {kChessboard, kCharuco}) {
     const Board board(BoardSpec::parse(spec));
-    const std::string kind = std::string(spec).substr(0, std::string(spec).find(':'));
     const CameraModel cam = c525_reference_model();
     struct Case {
       const char* name;
@@ -296,18 +303,13 @@ int main(int argc, char** argv) {
     for (const Case& c :
          {Case{"0.45m_third_out", 0.45, 0.0, 0.3}, Case{"0.9m_tilt34_third_out", 0.9, 0.6, 0.3},
           Case{"1.8m_two_thirds_out", 1.8, 0.0, 0.7}}) {
-      RenderOptions ro;
-      ro.blur_sigma_px = 0.8;
-      ro.noise_sigma = 5;
-      ro.supersample = 1;
-      SyntheticCamera sc(cam, board, ro);
       // The board's centre beyond the right edge of the view by `out` of its width less half.
       const double half_view = 0.5 * cam.width() / cam.fx() * c.distance;
       const int squares = board.spec().cols + (board.spec().type == BoardType::kCharuco ? 0 : 1);
       const double width = squares * board.spec().square_length_m;
       const double x = half_view + width * (c.out - 0.5);
-      partial[kind + "/" + c.name] =
-          sc.render(board_pose_at(board, Eigen::Vector3d(x, 0.02, c.distance), 0.4, c.tilt, 0.3));
+      partial[board_kind(spec) + "/" + c.name] =
+          render_on_c525(board, 5, 0.8, Eigen::Vector3d(x, 0.02, c.distance), c.tilt);
     }
   }
   // The chessboard with OpenCV's quads' search alone (DetectorOptions::chessboard_sector_search
