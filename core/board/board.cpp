@@ -636,6 +636,17 @@ double grid_residual(const std::vector<cv::Point2f>& pts, int cols, int rows) {
 // "Boards partly out of view").
 constexpr int kCoarseSquareMinPx = 8;
 
+// The search image's try of the sector search, where it runs (small squares), searches a crop:
+// the lattice's crossings grown by this many board lengths (each the longer square side times the
+// corners along the board's longer side), unless the squares are under
+// kFineSearchCropMinSquarePx px there. Boards of 6.3 px squares that the whole frame's search
+// found were lost on 5 of 6 crops tried (2 of the 115 boards found among the 288 rendered frames
+// above); none of 7.1 px or more, there nor among 240 other rendered frames (other seeds, poses,
+// blur and noise). A C525 frame partly out of view with squares under 16 px: median 63 ms
+// instead of 162 (docs/performance.md, "Boards partly out of view").
+constexpr double kFineSearchBoardLengths = 1.5;
+constexpr double kFineSearchCropMinSquarePx = 7;
+
 // OpenCV's sector-based chessboard search on `search` (cv::findChessboardCornersSB with `flags`):
 // the corners in cv::findChessboardCorners' order, or none. The two detectors number the corners
 // from opposite ends. Where the board's two orders differ in colour (inner corners odd along one
@@ -738,6 +749,22 @@ std::vector<cv::Point2f> Board::detect_chessboard(const cv::Mat& gray, const Sea
     const cv::Mat coarse_copy = coarse == k ? search : shrink_for_search(area, coarse);
     const bool fine_needed =
         coarse != k && lattice.spacing_px * k / coarse < static_cast<double>(kCoarseSquareMinPx);
+    // That try searches only about the lattice's crossings (the board lies within its own
+    // length of any of its interior corners: kFineSearchBoardLengths of them around the
+    // crossings' bounding box), but for squares under kFineSearchCropMinSquarePx, which the
+    // sector search lost on such crops.
+    cv::Rect fine(0, 0, search.cols, search.rows);
+    if (fine_needed && lattice.crossings > 0 && lattice.spacing_px >= kFineSearchCropMinSquarePx) {
+      const double pad = kFineSearchBoardLengths * (std::max(spec_.cols, spec_.rows) + 1) *
+                         lattice.long_spacing_px;
+      const cv::Rect2d& e = lattice.extent;
+      fine &= cv::Rect(cv::Point(static_cast<int>(std::floor(e.x - pad)),
+                                 static_cast<int>(std::floor(e.y - pad))),
+                       cv::Point(static_cast<int>(std::ceil(e.x + e.width + pad)) + 1,
+                                 static_cast<int>(std::ceil(e.y + e.height + pad)) + 1));
+    }
+    // (A copy: OpenCV's sector search is given continuous pixels.)
+    const cv::Mat fine_image = fine.area() < search.size().area() ? search(fine).clone() : search;
     struct Try {
       int shrink;
       int flags;
@@ -747,9 +774,13 @@ std::vector<cv::Point2f> Board::detect_chessboard(const cv::Mat& gray, const Sea
                                       Try{coarse, cv::CALIB_CB_NORMALIZE_IMAGE, true}};
     for (const Try& t : tries) {
       if (!t.run) continue;
-      const std::vector<cv::Point2f> found =
-          find_by_sectors(t.shrink == k ? search : coarse_copy, pattern, t.flags);
+      std::vector<cv::Point2f> found =
+          find_by_sectors(t.shrink == k ? fine_image : coarse_copy, pattern, t.flags);
       if (found.empty()) continue;
+      if (t.shrink == k) {
+        for (auto& p : found)
+          p += cv::Point2f(static_cast<float>(fine.x), static_cast<float>(fine.y));
+      }
       const std::vector<cv::Point2f> start = to_frame(found, t.shrink);
       std::vector<cv::Point2f> corners = start;
       refine(corners, t.shrink);

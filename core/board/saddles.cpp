@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <array>
 #include <cmath>
+#include <limits>
 #include <numbers>
 #include <opencv2/imgproc.hpp>
 #include <utility>
@@ -182,6 +183,9 @@ ChessboardLattice count_crossings(const std::vector<Saddle>& saddles, cv::Size s
   if (saddles.size() <= static_cast<size_t>(kNeighbours)) return {};
   const auto neighbours = nearest_neighbours(saddles, size);
   std::vector<double> shorter;
+  std::vector<double> longer;
+  cv::Point2f low(std::numeric_limits<float>::max(), std::numeric_limits<float>::max());
+  cv::Point2f high(std::numeric_limits<float>::lowest(), std::numeric_limits<float>::lowest());
   for (size_t i = 0; i < saddles.size(); ++i) {
     std::array<cv::Point2f, kNeighbours> v;
     std::array<bool, kNeighbours> flipped{};
@@ -213,13 +217,20 @@ ChessboardLattice count_crossings(const std::vector<Saddle>& saddles, cv::Size s
         const double lq = norm(axes[q]);
         const double cosine = std::abs(axes[p].dot(axes[q])) / (lp * lq);
         crossing = cosine < 0.8 && lp > 0.4 * lq && lp < 2.5 * lq;
-        if (crossing) shorter.push_back(std::min(lp, lq));
+        if (crossing) {
+          shorter.push_back(std::min(lp, lq));
+          longer.push_back(std::max(lp, lq));
+          low = {std::min(low.x, saddles[i].p.x), std::min(low.y, saddles[i].p.y)};
+          high = {std::max(high.x, saddles[i].p.x), std::max(high.y, saddles[i].p.y)};
+        }
       }
     }
   }
   ChessboardLattice lattice;
   lattice.crossings = static_cast<int>(shorter.size());
   lattice.spacing_px = median(std::move(shorter));
+  lattice.long_spacing_px = median(std::move(longer));
+  if (lattice.crossings > 0) lattice.extent = cv::Rect2d(low, high);
   return lattice;
 }
 
@@ -236,14 +247,17 @@ ChessboardLattice chessboard_lattice(const cv::Mat& gray) {
     cv::resize(gray, level, cv::Size(gray.cols / 2, gray.rows / 2), 0, 0, cv::INTER_AREA);
     scale = 2;
   }
-  if (std::min(level.cols, level.rows) < kMinSide) return {kCannotTell, 0};
+  if (std::min(level.cols, level.rows) < kMinSide) return {kCannotTell, 0, 0, {}};
   for (int l = 0; l < kLevels && std::min(level.cols, level.rows) >= kMinSide; ++l) {
     bool dense = false;
     const std::vector<Saddle> saddles = find_saddles(level, &dense);
-    if (dense) return {kCannotTell, 0};
+    if (dense) return {kCannotTell, 0, 0, {}};
     ChessboardLattice here = count_crossings(saddles, level.size());
     if (here.crossings > best.crossings) {
       here.spacing_px *= scale;
+      here.long_spacing_px *= scale;
+      here.extent = cv::Rect2d(here.extent.x * scale, here.extent.y * scale,
+                               here.extent.width * scale, here.extent.height * scale);
       best = here;
     }
     cv::Mat smaller;

@@ -26,6 +26,8 @@ int chessboard_crossings(const cv::Mat& gray);
 struct ChessboardLattice {
   int crossings = 0;
   double spacing_px = 0;
+  double long_spacing_px = 0;  // the same median of the longer axis
+  cv::Rect2d extent;           // the crossings' bounding box (a board's and any others)
 };
 ChessboardLattice chessboard_lattice(const cv::Mat& gray);
 

@@ -417,8 +417,9 @@ TEST(BoundedDetection, SteepNoisyChessboardsAreFoundBySectors) {
 // 6-12 px squares at 1280x720 were found only there, none of 16 px or more). Rendered boards of
 // about 60, 30, 15 and 9 px squares, facing the camera and tilted 52 degrees (the shorter side
 // foreshortened to 0.62 of it), are each measured within 10% of their shorter square side, and
-// each is found. (With the saddles at whole pixels, the board at 3 m facing the camera gave 2
-// crossings and was turned away by the pre-check.)
+// each is found: those of 9 px squares at 1.8 and 3 m on a crop about the crossings, that of 5.7
+// px squares in the whole frame. (With the saddles at whole pixels, the board at 3 m facing the
+// camera gave 2 crossings and was turned away by the pre-check.)
 TEST(BoundedDetection, TheLatticeMeasuresTheSquares) {
   const CameraModel cam = c525_reference_model();
   const Board board(BoardSpec::parse("chessboard:9x6:0.025"));
