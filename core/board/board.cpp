@@ -712,7 +712,7 @@ std::vector<cv::Point2f> Board::detect_chessboard(const cv::Mat& gray, const Sea
   // a side has no room for a board at half size; it is cheap as it is, and never busy.)
   ChessboardLattice lattice;  // not examined without the pre-check: spacing 0, every try runs
   if (options.chessboard_precheck) {
-    lattice = chessboard_lattice(search);
+    lattice = chessboard_lattice(search, k > 1);
     if (lattice.crossings < chessboard_crossings_needed(spec_.cols, spec_.rows)) return {};
   }
   // The corners found on a copy shrunk by `f`, in the frame's pixels and refined there.

@@ -236,14 +236,16 @@ ChessboardLattice count_crossings(const std::vector<Saddle>& saddles, cv::Size s
 
 }  // namespace
 
-ChessboardLattice chessboard_lattice(const cv::Mat& gray) {
+ChessboardLattice chessboard_lattice(const cv::Mat& gray, bool shrunk) {
   ChessboardLattice best;
   cv::Mat level = gray;
   double scale = 1;  // input pixels per pixel of `level`
   // Frames above kMaxSide px are examined from a half-size copy: a quarter of the cost (19-28 ms
   // instead of 85-120 ms at 1280 px, most of it page faults of fresh buffers), and boards of 8 px
-  // squares at 1280 px still give 10 or more crossings there.
-  if (std::max(gray.cols, gray.rows) > kMaxSide) {
+  // squares at 1280 px still give 10 or more crossings there. A copy already shrunk is examined
+  // as it is: halved again, a 1920x1080 frame was examined at a quarter of its resolution and
+  // boards of 11-16 px squares there gave too few crossings (7 of 41 boards turned away).
+  if (!shrunk && std::max(gray.cols, gray.rows) > kMaxSide) {
     cv::resize(gray, level, cv::Size(gray.cols / 2, gray.rows / 2), 0, 0, cv::INTER_AREA);
     scale = 2;
   }

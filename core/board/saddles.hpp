@@ -29,7 +29,9 @@ struct ChessboardLattice {
   double long_spacing_px = 0;  // the same median of the longer axis
   cv::Rect2d extent;           // the crossings' bounding box (a board's and any others)
 };
-ChessboardLattice chessboard_lattice(const cv::Mat& gray);
+// `shrunk`: `gray` is a frame already shrunk for the search (Board::detect above
+// DetectorOptions::search_max_side), examined as it is rather than from a half-size copy.
+ChessboardLattice chessboard_lattice(const cv::Mat& gray, bool shrunk = false);
 
 inline constexpr int kMaxSaddles = 600;
 inline constexpr int kCannotTell = 1 << 20;

@@ -446,6 +446,33 @@ TEST(BoundedDetection, TheLatticeMeasuresTheSquares) {
   EXPECT_EQ(chessboard_lattice(cv::Mat(40, 200, CV_8U, cv::Scalar(128))).spacing_px, 0);
 }
 
+// Above DetectorOptions::search_max_side the frame is searched on a shrunk copy, and the pre-check
+// examined that copy at half size again: a 1920x1080 frame at a quarter of its resolution, where a
+// board of 11-14 px squares gave 0-16 crossings and was turned away although OpenCV's sector
+// search finds it (7 of 41 boards, docs/performance.md, "Boards partly out of view"). The copy is
+// now examined as it is.
+TEST(BoundedDetection, ThePrecheckKeepsSmallSquaresOfLargeFrames) {
+  const Board board(BoardSpec::parse("chessboard:9x6:0.025"));
+  const CameraModel cam =
+      CameraModel::opencv5(1920, 1080, 1500, 1500, 955, 545, {-0.08, 0.05, 0.0005, -0.0003, 0});
+  RenderOptions ro;
+  ro.noise_sigma = 3;
+  ro.blur_sigma_px = 1.0;
+  ro.supersample = 1;
+  SyntheticCamera sc(cam, board, ro);
+  struct Case {
+    double square_px, tilt;
+  };
+  for (const Case& c : {Case{11.0, 0.2}, Case{13.5, 0.7}}) {
+    const double distance = cam.fx() * 0.025 / c.square_px;
+    const Pose pose =
+        board_pose_at(board, Eigen::Vector3d(-0.03, 0.015, distance), 1.2, c.tilt, -0.5);
+    const Detection d = board.detect(sc.render(pose));
+    EXPECT_EQ(d.size(), static_cast<size_t>(board.num_corners()))
+        << c.square_px << " px squares, tilt " << c.tilt;
+  }
+}
+
 // The two searches number a board's corners alike: boards of 9x6, 6x9, 8x6 and 7x5 inner corners
 // in 16 poses each (turned about the view axis by up to a quarter turn either way), where the
 // quads' search finds them. A board of odd x odd corners is the same after a half turn, and the
