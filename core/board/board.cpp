@@ -647,6 +647,21 @@ constexpr int kCoarseSquareMinPx = 8;
 constexpr double kFineSearchBoardLengths = 1.5;
 constexpr double kFineSearchCropMinSquarePx = 7;
 
+// The part of a search image of `size` that the sector search's try at the search image's
+// resolution searches for a board of cols x rows corners: the lattice's crossings grown by
+// kFineSearchBoardLengths board lengths (a board lies within its own length of any of its
+// interior corners), or the whole image where the squares are under kFineSearchCropMinSquarePx.
+cv::Rect fine_search_area(const ChessboardLattice& lattice, int cols, int rows, cv::Size size) {
+  const cv::Rect whole(cv::Point(0, 0), size);
+  if (lattice.spacing_px < kFineSearchCropMinSquarePx) return whole;
+  const double pad = kFineSearchBoardLengths * (std::max(cols, rows) + 1) * lattice.long_spacing_px;
+  const cv::Rect2d& e = lattice.extent;
+  return whole & cv::Rect(cv::Point(static_cast<int>(std::floor(e.x - pad)),
+                                    static_cast<int>(std::floor(e.y - pad))),
+                          cv::Point(static_cast<int>(std::ceil(e.x + e.width + pad)) + 1,
+                                    static_cast<int>(std::ceil(e.y + e.height + pad)) + 1));
+}
+
 // OpenCV's sector-based chessboard search on `search` (cv::findChessboardCornersSB with `flags`):
 // the corners in cv::findChessboardCorners' order, or none. The two detectors number the corners
 // from opposite ends. Where the board's two orders differ in colour (inner corners odd along one
@@ -749,41 +764,32 @@ std::vector<cv::Point2f> Board::detect_chessboard(const cv::Mat& gray, const Sea
     const cv::Mat coarse_copy = coarse == k ? search : shrink_for_search(area, coarse);
     const bool fine_needed =
         coarse != k && lattice.spacing_px * k / coarse < static_cast<double>(kCoarseSquareMinPx);
-    // That try searches only about the lattice's crossings (the board lies within its own
-    // length of any of its interior corners: kFineSearchBoardLengths of them around the
-    // crossings' bounding box), but for squares under kFineSearchCropMinSquarePx, which the
-    // sector search lost on such crops.
-    cv::Rect fine(0, 0, search.cols, search.rows);
-    if (fine_needed && lattice.crossings > 0 && lattice.spacing_px >= kFineSearchCropMinSquarePx) {
-      const double pad = kFineSearchBoardLengths * (std::max(spec_.cols, spec_.rows) + 1) *
-                         lattice.long_spacing_px;
-      const cv::Rect2d& e = lattice.extent;
-      fine &= cv::Rect(cv::Point(static_cast<int>(std::floor(e.x - pad)),
-                                 static_cast<int>(std::floor(e.y - pad))),
-                       cv::Point(static_cast<int>(std::ceil(e.x + e.width + pad)) + 1,
-                                 static_cast<int>(std::ceil(e.y + e.height + pad)) + 1));
-    }
-    // (A copy: OpenCV's sector search is given continuous pixels.)
-    const cv::Mat fine_image = fine.area() < search.size().area() ? search(fine).clone() : search;
+    // That try searches only about the lattice's crossings (fine_search_area).
+    const cv::Rect fine =
+        fine_needed ? fine_search_area(lattice, spec_.cols, spec_.rows, search.size()) : cv::Rect();
     struct Try {
-      int shrink;
+      bool fine;  // the search image's try (else the copy of at most kSectorSearchMaxSide px)
       int flags;
       bool run;
     };
-    const std::array<Try, 3> tries = {Try{coarse, 0, true}, Try{k, 0, fine_needed},
-                                      Try{coarse, cv::CALIB_CB_NORMALIZE_IMAGE, true}};
+    const std::array<Try, 3> tries = {Try{false, 0, true}, Try{true, 0, fine_needed},
+                                      Try{false, cv::CALIB_CB_NORMALIZE_IMAGE, true}};
     for (const Try& t : tries) {
       if (!t.run) continue;
-      std::vector<cv::Point2f> found =
-          find_by_sectors(t.shrink == k ? fine_image : coarse_copy, pattern, t.flags);
+      // (A crop is copied: OpenCV's sector search is given continuous pixels.)
+      const cv::Mat image = !t.fine                        ? coarse_copy
+                            : fine.size() == search.size() ? search
+                                                           : search(fine).clone();
+      std::vector<cv::Point2f> found = find_by_sectors(image, pattern, t.flags);
       if (found.empty()) continue;
-      if (t.shrink == k) {
+      if (t.fine) {
         for (auto& p : found)
           p += cv::Point2f(static_cast<float>(fine.x), static_cast<float>(fine.y));
       }
-      const std::vector<cv::Point2f> start = to_frame(found, t.shrink);
+      const int shrink = t.fine ? k : coarse;
+      const std::vector<cv::Point2f> start = to_frame(found, shrink);
       std::vector<cv::Point2f> corners = start;
-      refine(corners, t.shrink);
+      refine(corners, shrink);
       // A refinement that lost the grid (kRefinedGridSlackPx) is dropped; the next try decides.
       if (grid_residual(corners, spec_.cols, spec_.rows) <=
           2 * grid_residual(start, spec_.cols, spec_.rows) + kRefinedGridSlackPx) {
