@@ -304,6 +304,21 @@ double marker_clearance_px(const cv::Point2d& ju, const cv::Point2d& jv, double 
   return best;
 }
 
+// The Gaussian (sigma, px) the image is smoothed with before our refinement of a ChArUco corner
+// whose window clears the adjacent markers by twice that beyond kMarginPx. On a sharp image few
+// pixels about the saddle carry a gradient, and cornerSubPix's fit of them is biased by where the
+// edges cross the pixel grid: the mean error of a corner over 6 noise draws (its bias) was 0.046
+// px RMS at blur 0.5 px on the ray-cast renderer, 0.023 px with this smoothing (the warping
+// renderer 0.037 -> 0.029); the noise about the mean unchanged (0.011 -> 0.012 px). In closed
+// loops (C525, 30 report cameras) the default's eps_gt fell from 0.350 to 0.189 px with a sharp
+// renderer. Smoothing every window gained more there (0.156 px) but spread the markers' edges
+// into the windows of steep boards: corners pulled up to 0.9-1.4 px off at 65 degrees of tilt
+// (bias 0.10 -> 0.20-0.24 px RMS), where the clearance rule had brought them back; smoothing with
+// the window shrunk by the smoothing's reach was worse still. 1.4 px pulled corners of boards
+// tilted 55 degrees off on the warping renderer. `build/bin/detector_bias`, `bench_pose_selection`;
+// docs/benchmarks.md, "Smoothing before the refinement".
+constexpr double kRefineSmoothingPx = 1.0;
+
 // OpenCV refines ChArUco corners with a window of at most 11x11 (cornerRefinementWinSize = 5),
 // shrunk near the markers' corners; too small for large squares, and on tilted boards it leaves
 // biases of up to 0.4 px. Refine again with a window scaled to the local square size (12% of the
@@ -312,7 +327,8 @@ double marker_clearance_px(const cv::Point2d& ju, const cv::Point2d& jv, double 
 // at tilts beyond ~60 degrees a window from the corner spacing alone reaches a marker's border
 // and pulls the corner several pixels off (docs/benchmarks.md, "The corner detector's bias").
 // A corner whose markers come closer than kMinClearancePx is dropped: no window both sees the
-// saddle and misses the markers.
+// saddle and misses the markers. A window clear of the markers sees the image smoothed
+// (kRefineSmoothingPx).
 void refine_charuco_corners(const cv::Mat& gray, int corners_per_row, double marker_inset,
                             std::vector<int>* ids, std::vector<cv::Point2f>* corners) {
   constexpr double kMarginPx = 1.5;  // blur and the estimate's own movement
@@ -333,7 +349,7 @@ void refine_charuco_corners(const cv::Mat& gray, int corners_per_row, double mar
     if (a) return c - cv::Point2d(*a);
     return std::nullopt;
   };
-  std::map<int, std::vector<size_t>> by_window;
+  std::map<std::pair<int, bool>, std::vector<size_t>> by_window;  // (half window, smoothed)
   std::vector<bool> drop(ids->size(), false);
   for (size_t i = 0; i < ids->size(); ++i) {
     const int id = (*ids)[i], col = id % corners_per_row;
@@ -348,14 +364,40 @@ void refine_charuco_corners(const cv::Mat& gray, int corners_per_row, double mar
     }
     const int by_spacing = std::clamp(static_cast<int>(0.12 * d), 2, 10);
     const int by_markers = static_cast<int>(std::floor(clearance - kMarginPx));
-    by_window[std::max(1, std::min(by_spacing, by_markers))].push_back(i);
+    const int hw = std::max(1, std::min(by_spacing, by_markers));
+    // Smoothed where the window clears the markers by the smoothing's reach (2 sigma) as well.
+    by_window[{hw, clearance - kMarginPx - hw >= 2 * kRefineSmoothingPx}].push_back(i);
   }
-  for (const auto& [hw, members] : by_window) {
-    std::vector<cv::Point2f> pts;
-    for (size_t i : members) pts.push_back((*corners)[i]);
-    cv::cornerSubPix(gray, pts, cv::Size(hw, hw), cv::Size(-1, -1),
-                     cv::TermCriteria(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 50, 1e-3));
-    for (size_t k = 0; k < members.size(); ++k) (*corners)[members[k]] = pts[k];
+  const cv::TermCriteria until(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 50, 1e-3);
+  for (const auto& [window, members] : by_window) {
+    const auto [hw, smooth] = window;
+    if (!smooth) {
+      std::vector<cv::Point2f> pts;
+      for (size_t i : members) pts.push_back((*corners)[i]);
+      cv::cornerSubPix(gray, pts, cv::Size(hw, hw), cv::Size(-1, -1), until);
+      for (size_t k = 0; k < members.size(); ++k) (*corners)[members[k]] = pts[k];
+      continue;
+    }
+    // Each corner on a smoothed patch about it (the pixels beyond it taken from the frame, not
+    // mirrored) wide enough for its window, the corner's movement and the smoothing's kernel:
+    // the cost stays with the corners, whatever the frame's size.
+    const int reach = hw + 2 + static_cast<int>(std::ceil(3 * kRefineSmoothingPx));
+    for (size_t i : members) {
+      const cv::Point c((*corners)[i]);
+      const cv::Rect patch = cv::Rect(c.x - reach, c.y - reach, 2 * reach + 1, 2 * reach + 1) &
+                             cv::Rect(0, 0, gray.cols, gray.rows);
+      // (cornerSubPix needs 2 hw + 5 pixels a side; a patch cut shorter by the frame's edge is
+      // refined in the frame as it is.)
+      const bool fits = std::min(patch.width, patch.height) >= 2 * hw + 5;
+      cv::Mat smoothed;
+      if (fits) cv::GaussianBlur(gray(patch), smoothed, cv::Size(), kRefineSmoothingPx);
+      const cv::Point2f origin =
+          fits ? cv::Point2f(static_cast<float>(patch.x), static_cast<float>(patch.y))
+               : cv::Point2f(0, 0);
+      std::vector<cv::Point2f> pts = {(*corners)[i] - origin};
+      cv::cornerSubPix(fits ? smoothed : gray, pts, cv::Size(hw, hw), cv::Size(-1, -1), until);
+      (*corners)[i] = pts[0] + origin;
+    }
   }
   size_t kept = 0;
   for (size_t i = 0; i < ids->size(); ++i) {
