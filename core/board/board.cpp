@@ -349,8 +349,9 @@ void refine_charuco_corners(const cv::Mat& gray, int corners_per_row, double mar
     if (a) return c - cv::Point2d(*a);
     return std::nullopt;
   };
-  std::map<std::pair<int, bool>, std::vector<size_t>> by_window;  // (half window, smoothed)
-  std::vector<bool> drop(ids->size(), false);
+  std::vector<bool> drop(ids->size(), false), smooth(ids->size(), false);
+  std::vector<int> half_window(ids->size(),
+                               0);  // 0: isolated (OpenCV's refinement kept) or dropped
   for (size_t i = 0; i < ids->size(); ++i) {
     const int id = (*ids)[i], col = id % corners_per_row;
     const auto ju = step(id, col > 0 ? id - 1 : -1, col + 1 < corners_per_row ? id + 1 : -1);
@@ -364,40 +365,34 @@ void refine_charuco_corners(const cv::Mat& gray, int corners_per_row, double mar
     }
     const int by_spacing = std::clamp(static_cast<int>(0.12 * d), 2, 10);
     const int by_markers = static_cast<int>(std::floor(clearance - kMarginPx));
-    const int hw = std::max(1, std::min(by_spacing, by_markers));
+    half_window[i] = std::max(1, std::min(by_spacing, by_markers));
     // Smoothed where the window clears the markers by the smoothing's reach (2 sigma) as well.
-    by_window[{hw, clearance - kMarginPx - hw >= 2 * kRefineSmoothingPx}].push_back(i);
+    smooth[i] = clearance - kMarginPx - half_window[i] >= 2 * kRefineSmoothingPx;
   }
+  // Each corner on its own (the window's size is the corner's); a smoothed one on a patch about
+  // it (the pixels beyond it taken from the frame, not mirrored) wide enough for its window, the
+  // corner's movement and the smoothing's kernel: the cost stays with the corners, whatever the
+  // frame's size.
   const cv::TermCriteria until(cv::TermCriteria::EPS + cv::TermCriteria::COUNT, 50, 1e-3);
-  for (const auto& [window, members] : by_window) {
-    const auto [hw, smooth] = window;
-    if (!smooth) {
-      std::vector<cv::Point2f> pts;
-      for (size_t i : members) pts.push_back((*corners)[i]);
-      cv::cornerSubPix(gray, pts, cv::Size(hw, hw), cv::Size(-1, -1), until);
-      for (size_t k = 0; k < members.size(); ++k) (*corners)[members[k]] = pts[k];
-      continue;
-    }
-    // Each corner on a smoothed patch about it (the pixels beyond it taken from the frame, not
-    // mirrored) wide enough for its window, the corner's movement and the smoothing's kernel:
-    // the cost stays with the corners, whatever the frame's size.
+  for (size_t i = 0; i < ids->size(); ++i) {
+    const int hw = half_window[i];
+    if (hw == 0) continue;  // isolated or dropped
     const int reach = hw + 2 + static_cast<int>(std::ceil(3 * kRefineSmoothingPx));
-    for (size_t i : members) {
-      const cv::Point c((*corners)[i]);
-      const cv::Rect patch = cv::Rect(c.x - reach, c.y - reach, 2 * reach + 1, 2 * reach + 1) &
-                             cv::Rect(0, 0, gray.cols, gray.rows);
-      // (cornerSubPix needs 2 hw + 5 pixels a side; a patch cut shorter by the frame's edge is
-      // refined in the frame as it is.)
-      const bool fits = std::min(patch.width, patch.height) >= 2 * hw + 5;
-      cv::Mat smoothed;
-      if (fits) cv::GaussianBlur(gray(patch), smoothed, cv::Size(), kRefineSmoothingPx);
-      const cv::Point2f origin =
-          fits ? cv::Point2f(static_cast<float>(patch.x), static_cast<float>(patch.y))
-               : cv::Point2f(0, 0);
-      std::vector<cv::Point2f> pts = {(*corners)[i] - origin};
-      cv::cornerSubPix(fits ? smoothed : gray, pts, cv::Size(hw, hw), cv::Size(-1, -1), until);
-      (*corners)[i] = pts[0] + origin;
+    const cv::Point c((*corners)[i]);
+    const cv::Rect patch = cv::Rect(c.x - reach, c.y - reach, 2 * reach + 1, 2 * reach + 1) &
+                           cv::Rect(0, 0, gray.cols, gray.rows);
+    // (cornerSubPix needs 2 hw + 5 pixels a side; a patch cut shorter by the frame's edge is
+    // refined in the frame as it is.)
+    cv::Mat smoothed;
+    cv::Point2f origin(0, 0);
+    if (smooth[i] && std::min(patch.width, patch.height) >= 2 * hw + 5) {
+      cv::GaussianBlur(gray(patch), smoothed, cv::Size(), kRefineSmoothingPx);
+      origin = cv::Point2f(static_cast<float>(patch.x), static_cast<float>(patch.y));
     }
+    std::vector<cv::Point2f> pts = {(*corners)[i] - origin};
+    cv::cornerSubPix(smoothed.empty() ? gray : smoothed, pts, cv::Size(hw, hw), cv::Size(-1, -1),
+                     until);
+    (*corners)[i] = pts[0] + origin;
   }
   size_t kept = 0;
   for (size_t i = 0; i < ids->size(); ++i) {
