@@ -2,10 +2,11 @@
 // (docs/benchmarks.md, "The corner detector's bias").
 //
 //   build/bin/detector_bias [--tilts 0,20,40,55,65] [--blurs 0.5,0.8,1.5] [--noise 2] [--draws 6]
+//                           [--board charuco:9x6:0.028:0.0182:DICT_4X4_50 | chessboard:9x6:0.028]
 //
-// Per (renderer, blur, tilt): 4 poses of the default ChArUco board (about half the C525's
-// width, tilt about 4 different in-plane axes), each rendered `draws` times with independent
-// noise. Per corner detected in every draw: its bias is the mean error against the true
+// Per (renderer, blur, tilt): 4 poses of the board (default: the default ChArUco board; about
+// half the C525's width, tilt about 4 different in-plane axes), each rendered `draws` times with
+// independent noise. Per corner detected in every draw: its bias is the mean error against the true
 // projection over the draws, its noise the spread about that mean. Printed: corners, RMS, median
 // and largest bias, RMS noise. A bias well above the noise is what a covariance (which assumes
 // independent noise) cannot predict; a largest bias far above the median is a corner pulled off.
@@ -40,9 +41,9 @@ struct BiasFigures {
   double bias_median = 0, bias_max = 0;  // per-corner |bias|: a few wrong corners show as max >> median
 };
 
-BiasFigures measure(Renderer renderer, double blur, double tilt_deg, double noise, int draws) {
+BiasFigures measure(const Board& board, Renderer renderer, double blur, double tilt_deg,
+                    double noise, int draws) {
   const CameraModel cam = c525_reference_model();
-  const Board board;
   double bias_ss = 0, noise_ss = 0;
   std::vector<double> bias_norms;
   BiasFigures f;
@@ -93,6 +94,7 @@ int main(int argc, char** argv) {
   std::vector<double> tilts = {0, 20, 40, 55, 65}, blurs = {0.5, 0.8, 1.5};
   double noise = 2;
   int draws = 6;
+  BoardSpec spec;
   for (int i = 1; i < argc; ++i) {
     const std::string a = argv[i];
     if (i + 1 >= argc) {
@@ -104,17 +106,20 @@ int main(int argc, char** argv) {
     else if (a == "--blurs") blurs = numbers(v);
     else if (a == "--noise") noise = std::stod(v);
     else if (a == "--draws") draws = std::max(2, std::stoi(v));
+    else if (a == "--board")
+      spec = BoardSpec::parse(v);
     else {
       std::fprintf(stderr, "unknown option %s\n", a.c_str());
       return 1;
     }
   }
+  const Board board(spec);
   std::printf("| renderer | blur [px] | tilt [deg] | corners | bias RMS [px] | bias median [px] | bias max [px] | noise RMS [px] |\n"
               "|---|---|---|---|---|---|---|---|\n");
   for (const Renderer r : {Renderer::kRayCast, Renderer::kWarp})
     for (const double blur : blurs)
       for (const double tilt : tilts) {
-        const BiasFigures f = measure(r, blur, tilt, noise, draws);
+        const BiasFigures f = measure(board, r, blur, tilt, noise, draws);
         std::printf("| %s | %.1f | %.0f | %d | %.4f | %.4f | %.4f | %.4f |\n", r == Renderer::kWarp ? "warp" : "raycast",
                     blur, tilt, f.corners, f.bias_rms, f.bias_median, f.bias_max, f.noise_rms);
         std::fflush(stdout);
