@@ -319,6 +319,21 @@ double marker_clearance_px(const cv::Point2d& ju, const cv::Point2d& jv, double 
 // docs/benchmarks.md, "Smoothing before the refinement".
 constexpr double kRefineSmoothingPx = 1.0;
 
+// What a refinement window keeps clear of the nearest edge that does not pass through its corner
+// (a marker's border, a square's far edge) beyond its own reach: blur and the estimate's own
+// movement during the refinement.
+constexpr double kMarginPx = 1.5;
+
+// One square step along a grid line at corner `c`, from its neighbours on either side (either may
+// be missing): the central difference, or the one-sided one, or nothing for an isolated corner.
+std::optional<cv::Point2d> grid_step(const cv::Point2f* before, const cv::Point2d& c,
+                                     const cv::Point2f* after) {
+  if (before && after) return (cv::Point2d(*after) - cv::Point2d(*before)) * 0.5;
+  if (after) return cv::Point2d(*after) - c;
+  if (before) return c - cv::Point2d(*before);
+  return std::nullopt;
+}
+
 // cornerSubPix on one corner with a window of half-size `hw`; `smooth`: on the frame smoothed by
 // kRefineSmoothingPx, on a patch about the corner (the pixels beyond it taken from the frame, not
 // mirrored) wide enough for its window, the corner's movement and the kernel, so the cost stays
@@ -355,7 +370,6 @@ cv::Point2f refine_corner(const cv::Mat& gray, cv::Point2f corner, int hw, bool 
 // (kRefineSmoothingPx).
 void refine_charuco_corners(const cv::Mat& gray, int corners_per_row, double marker_inset,
                             std::vector<int>* ids, std::vector<cv::Point2f>* corners) {
-  constexpr double kMarginPx = 1.5;  // blur and the estimate's own movement
   constexpr double kMinClearancePx = kMarginPx + 1.0;
   std::map<int, size_t> index;
   for (size_t i = 0; i < ids->size(); ++i) index[(*ids)[i]] = i;
@@ -363,15 +377,9 @@ void refine_charuco_corners(const cv::Mat& gray, int corners_per_row, double mar
     auto it = index.find(id);
     return it == index.end() ? nullptr : &(*corners)[it->second];
   };
-  // One square step along the grid from the neighbours on either side (or one side).
-  auto step = [&](int id, int prev, int next) -> std::optional<cv::Point2d> {
-    const cv::Point2f* a = prev >= 0 ? at(prev) : nullptr;
-    const cv::Point2f* b = next >= 0 ? at(next) : nullptr;
-    const cv::Point2d c = (*corners)[index[id]];
-    if (a && b) return (cv::Point2d(*b) - cv::Point2d(*a)) * 0.5;
-    if (b) return cv::Point2d(*b) - c;
-    if (a) return c - cv::Point2d(*a);
-    return std::nullopt;
+  auto step = [&](int id, int prev, int next) {
+    return grid_step(prev >= 0 ? at(prev) : nullptr, (*corners)[index[id]],
+                     next >= 0 ? at(next) : nullptr);
   };
   std::vector<bool> drop(ids->size(), false), smooth(ids->size(), false);
   std::vector<int> half_window(ids->size(),
@@ -422,9 +430,10 @@ double square_clearance_px(const cv::Point2d& ju, const cv::Point2d& jv) {
   return best;
 }
 
-// A chessboard's corners, refined (cornerSubPix, half-window `hw`), refined again on the frame
-// smoothed by kRefineSmoothingPx where the window clears the edges of the squares about the corner
-// by twice that beyond kMarginPx, as ChArUco corners are (refine_charuco_corners): the bias of a
+// A chessboard's corners, already refined on the frame (cornerSubPix, half-window `hw`), refined
+// again on the frame smoothed by kRefineSmoothingPx where the window clears the far edges of the
+// squares about the corner by twice that beyond kMarginPx, as ChArUco corners are
+// (refine_charuco_corners); the first refinement gives this one its start. The bias of a
 // sharp board's corners (their mean error over noise draws) fell from 0.044 to 0.020 px RMS at
 // blur 0.5 px on the ray-cast renderer (warping renderer 0.032 -> 0.025), no tilt or blur worse;
 // the window from the corner spacing never reached those edges on the boards measured, so it is
@@ -432,15 +441,14 @@ double square_clearance_px(const cv::Point2d& ju, const cv::Point2d& jv) {
 // before the refinement").
 void smooth_refine_chessboard_corners(const cv::Mat& gray, int cols, int rows, int hw,
                                       std::vector<cv::Point2f>* corners) {
-  constexpr double kMarginPx = 1.5;  // as refine_charuco_corners
   const std::vector<cv::Point2f> pts = *corners;
-  auto at = [&](int r, int c) { return cv::Point2d(pts[static_cast<size_t>(r * cols + c)]); };
-  // One square step along (dr, dc) from the neighbours on either side (or one side).
+  auto at = [&](int r, int c) -> const cv::Point2f* {
+    return r >= 0 && c >= 0 && r < rows && c < cols ? &pts[static_cast<size_t>(r * cols + c)]
+                                                    : nullptr;
+  };
+  // One square step along (dr, dc); a chessboard has at least two corners along each axis.
   auto step = [&](int r, int c, int dr, int dc) {
-    const bool before = r - dr >= 0 && c - dc >= 0;
-    const bool after = r + dr < rows && c + dc < cols;
-    if (before && after) return (at(r + dr, c + dc) - at(r - dr, c - dc)) * 0.5;
-    return after ? at(r + dr, c + dc) - at(r, c) : at(r, c) - at(r - dr, c - dc);
+    return *grid_step(at(r - dr, c - dc), *at(r, c), at(r + dr, c + dc));
   };
   for (int r = 0; r < rows; ++r) {
     for (int c = 0; c < cols; ++c) {

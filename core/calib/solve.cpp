@@ -122,8 +122,9 @@ class PriorCost final : public ceres::CostFunction {
   PriorCost(const IntrinsicsPrior& prior, const std::vector<std::string>& names) {
     const int m = static_cast<int>(prior.names.size());
     const int n = static_cast<int>(names.size());
-    Eigen::LLT<Eigen::MatrixXd> llt(prior.covariance.inverse());
-    if (llt.info() != Eigen::Success || !prior.covariance.inverse().allFinite()) {
+    const Eigen::MatrixXd information = prior.covariance.inverse();
+    Eigen::LLT<Eigen::MatrixXd> llt(information);
+    if (llt.info() != Eigen::Success || !information.allFinite()) {
       throw Error(ErrorCode::kInvalidArgument,
                   "calibration: the prior's covariance is not positive definite");
     }
