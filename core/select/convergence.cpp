@@ -120,6 +120,34 @@ void CalibrationEngine::Impl::continue_towards_accuracy() {
   choose_accuracy_target();
 }
 
+bool CalibrationEngine::Impl::reopen_above_ceiling() {
+  const double ceiling = opt.ratio_stop_max_p90_px;
+  if (!(ceiling > 0) || !expected || expected->p90_px <= ceiling) return false;  // NaN: above
+  if (static_cast<int>(keyframes.size()) >= opt.max_keyframes)
+    return true;  // the cap's failure says why
+  const int param = expected->limiting_param;
+  if (param < 0) return false;  // every intrinsic fixed: nothing to target
+  param_converged[param] = false;
+  EngineEvent e{EngineEvent::Kind::kParameterReopened};
+  e.parameter = estimate.param_names()[param];
+  e.message = "every parameter passed the ratio test, but the expected error is " +
+              px_text(expected->p90_px) + " (90th percentile; RMS " + px_text(expected->rms_px) +
+              "), above ratio_stop_max_p90_px " + px_text(ceiling) + "; " + e.parameter +
+              " holds it back (" + percent_text(expected->limiting_share) +
+              " of the squared error)";
+  emit(e);
+  set_state(EngineState::kRefining);
+  choose_accuracy_target();
+  return true;
+}
+
+std::string CalibrationEngine::Impl::ceiling_shortfall() const {
+  return "keyframe cap (" + std::to_string(opt.max_keyframes) +
+         ") reached: every parameter passed the ratio test, but the expected error is " +
+         px_text(expected->p90_px) + " (90th percentile; RMS " + px_text(expected->rms_px) +
+         "), above ratio_stop_max_p90_px " + px_text(opt.ratio_stop_max_p90_px);
+}
+
 std::string CalibrationEngine::Impl::accuracy_shortfall() const {
   std::string why = "keyframe cap (" + std::to_string(opt.max_keyframes) + ") reached with an expected error of " +
                     px_text(expected->p90_px) + " (90th percentile; RMS " + px_text(expected->rms_px) +

@@ -47,6 +47,8 @@ const char* engine_event_name(EngineEvent::Kind k) {
     case EngineEvent::Kind::kKeyframeRejected: return "keyframe_rejected";
     case EngineEvent::Kind::kCalibrated: return "calibrated";
     case EngineEvent::Kind::kParameterConverged: return "parameter_converged";
+    case EngineEvent::Kind::kParameterReopened:
+      return "parameter_reopened";
     case EngineEvent::Kind::kTargetChanged: return "target_changed";
     case EngineEvent::Kind::kTargetSkipped: return "target_skipped";
     case EngineEvent::Kind::kError: return "error";
@@ -115,6 +117,7 @@ void EngineOptions::set_method(Method m) {
   view_must_serve_target = d.view_must_serve_target;
   candidate_score = d.candidate_score;
   posegen.pinhole_fill = d.posegen.pinhole_fill;
+  ratio_stop_max_p90_px = d.ratio_stop_max_p90_px;
   if (m == Method::kPosecal) return;
   // The paper's rules: one generated pose per target, the measured ratio test only, the
   // reference implementation's board distance (about 0.53-0.6 of the view).
@@ -125,6 +128,7 @@ void EngineOptions::set_method(Method m) {
   view_candidates = 0;
   view_must_serve_target = false;
   posegen.pinhole_fill = 0.6;
+  ratio_stop_max_p90_px = 0;
 }
 
 CalibrationEngine::Impl::Impl(cv::Size s, const EngineOptions& o)
@@ -400,7 +404,7 @@ void CalibrationEngine::Impl::after_calibration() {
     set_state(EngineState::kRefining);
     choose_refinement_target();  // may converge parameters prospectively
   }
-  if (all_converged()) {
+  if (all_converged() && !reopen_above_ceiling()) {
     target.reset();
     target_param = -1;
     set_state(EngineState::kConverged, "every parameter converged");
@@ -408,6 +412,7 @@ void CalibrationEngine::Impl::after_calibration() {
   }
   if (static_cast<int>(keyframes.size()) >= opt.max_keyframes) {
     std::string why = "keyframe cap (" + std::to_string(opt.max_keyframes) + ") reached before convergence";
+    if (all_converged()) why = ceiling_shortfall();
     if (!result->solver_converged()) {
       why += "; the last bundle adjustment stopped at its iteration limit (" + result->termination_message + ")";
     }

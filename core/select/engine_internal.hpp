@@ -153,6 +153,10 @@ struct CalibrationEngine::Impl {
   // target for the intrinsic that holds the expected error back.
   void continue_towards_accuracy();
   std::string accuracy_shortfall() const;  // why the cap ended an accuracy_px session
+  // The ratio test's stop above EngineOptions::ratio_stop_max_p90_px: true if the stop is
+  // refused (the limiting parameter opened again and targeted, or the cap reached).
+  bool reopen_above_ceiling();
+  std::string ceiling_shortfall() const;  // why the cap ended such a session
 
   // --- target_choice.cpp ---
   void choose_refinement_target();

@@ -95,7 +95,7 @@ void print_progress_text(void* user, const char* kind, const char* payload) {
     what = p.value("parameter", std::string("?")) + " converged (" +
            std::to_string(p.value("keyframes", 0)) + " keyframes)";
   } else if (k == "camera_disconnected" || k == "camera_reconnected" || k == "error" ||
-             k == "target_skipped" || k == "keyframe_rejected") {
+             k == "target_skipped" || k == "keyframe_rejected" || k == "parameter_reopened") {
     std::string name = k;
     std::replace(name.begin(), name.end(), '_', ' ');
     what = name + ": " + p.value("message", std::string());

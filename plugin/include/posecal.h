@@ -353,6 +353,11 @@ typedef struct posecal_image {
  *   as not converged at max_keyframes with a reason naming the error reached and the parameter
  *   that holds it back; null unsets it; with method "paper" or "reference-std", which stop on
  *   the ratio test, POSECAL_E_INVALID_ARGUMENT),
+ *   "ratio_stop_max_p90_px" (5; a number in [0, 1e6], 0 = off; method "paper" and
+ *   "reference-std" set 0): without "accuracy_px", the ratio test's "every parameter converged"
+ *   is refused while "expected_error_p90_px" is above this; the parameter that holds the error
+ *   back is opened again (event "parameter_reopened") and targeted, and a session that so
+ *   reaches max_keyframes ends as not converged with a reason naming the figure,
  *   "journal" (unset; a file path: every keyframe is appended to this journal and flushed to
  *   disk when it is captured, so a kill loses at most the frame in flight; if the file exists
  *   and was recorded with the same camera and config, the session resumes: its keyframes are
@@ -479,11 +484,11 @@ POSECAL_API posecal_status posecal_session_save_as(posecal_session* session, con
 POSECAL_API posecal_status posecal_session_interrupt(posecal_session* session) POSECAL_NOEXCEPT;
 
 /* Events: called with a kind ("state_changed", "captured", "keyframe_rejected", "calibrated",
- * "parameter_converged", "target_changed", "target_skipped", "camera_disconnected",
- * "camera_reconnected", "error") and a JSON payload ({"keyframes", "frames", "message", and
- * "from"/"to" for state_changed, "parameter" where one is concerned}).
- * Thread: always the thread that is inside posecal_session_step or posecal_session_feed, before
- * that call returns; never a library thread. Inside the callback only posecal_session_status,
+ * "parameter_converged", "parameter_reopened", "target_changed", "target_skipped",
+ * "camera_disconnected", "camera_reconnected", "error") and a JSON payload ({"keyframes", "frames",
+ * "message", and "from"/"to" for state_changed, "parameter" where one is concerned}). Thread:
+ * always the thread that is inside posecal_session_step or posecal_session_feed, before that call
+ * returns; never a library thread. Inside the callback only posecal_session_status,
  * posecal_session_target_pose, posecal_session_result and posecal_last_error may be called on
  * the same session (every other session call returns POSECAL_E_STATE); other sessions and
  * contexts may be used as usual. The strings are valid only during the call. The callback must

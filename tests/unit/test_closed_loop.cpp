@@ -33,6 +33,9 @@ struct Case {
   // honesty check then needs it to be the truth's.
   bool auto_lens = false;
   std::vector<LensModel> expect_lens = {};  // any of these
+  // A run may end at the keyframe cap because the ratio test's stop was refused above
+  // EngineOptions::ratio_stop_max_p90_px (and must then say so) instead of converging.
+  bool ceiling_may_refuse = false;
 };
 
 struct Run {
@@ -111,7 +114,13 @@ void run_case(const Case& c) {
     const char* who = r.op == OperatorKind::kRobot ? "robot" : "person";
     EXPECT_TRUE(r.has_engine) << c.name << " seed " << r.seed << " " << who << ": no engine";
     if (!r.has_engine) continue;
-    EXPECT_TRUE(r.converged) << c.name << " seed " << r.seed << " " << who << ": " << r.state << " " << r.failure;
+    if (c.ceiling_may_refuse && !r.converged) {
+      EXPECT_NE(r.failure.find("above ratio_stop_max_p90_px"), std::string::npos)
+          << c.name << " seed " << r.seed << " " << who << ": " << r.state << " " << r.failure;
+    } else {
+      EXPECT_TRUE(r.converged) << c.name << " seed " << r.seed << " " << who << ": " << r.state
+                               << " " << r.failure;
+    }
     EXPECT_TRUE(r.has_result) << c.name << " seed " << r.seed << " " << who << ": no calibration";
     if (!r.has_result) continue;
     // Converged means honest: every intrinsic within 5 sigma of the truth. (On an 8 degree
@@ -147,8 +156,15 @@ TEST(ClosedLoop, IndustrialCameraWithStrongBarrelDistortion) {
 }
 
 TEST(ClosedLoop, LongFocalLowDistortionCamera) {
-  // 1600x1200, 50 mm lens: 8 degree field of view.
-  run_case({"tele", CameraModel::opencv5(1600, 1200, 11300, 11300, 799.5, 599.5, {-0.02, 0.05, 0.0, 0.0, 0.0}), 4, 5});
+  // 1600x1200, 50 mm lens: 8 degree field of view. k2 and k3 are all but unobservable, and the
+  // expected error's p90 stays near 5-6 px: 4 of these 8 runs end at the keyframe cap, refused by
+  // the ceiling on the ratio test's stop, with a realised eps_gt of 1.0-4.0 px (all 8 "converged"
+  // before the ceiling: the test asked for it).
+  Case c{"tele",
+         CameraModel::opencv5(1600, 1200, 11300, 11300, 799.5, 599.5, {-0.02, 0.05, 0.0, 0.0, 0.0}),
+         4, 5};
+  c.ceiling_may_refuse = true;
+  run_case(c);
 }
 
 TEST(ClosedLoop, WideAngleRationalCamera) {

@@ -265,6 +265,49 @@ TEST(Engine, KeyframeCapEndsAsFailedButKeepsTheResult) {
   EXPECT_EQ(rig.transitions().back(), "refining>failed");
 }
 
+// The ratio test's stop is refused while the expected error is above the ceiling: an impossible
+// ceiling keeps the run going (the limiting parameter opened again each time) until the cap,
+// which names the figure; the paper's methods have no ceiling.
+TEST(Engine, RatioStopIsRefusedAboveTheExpectedErrorCeiling) {
+  Rig rig;
+  EngineOptions o;
+  o.robot = true;
+  o.max_keyframes = 9;
+  o.ratio_stop_max_p90_px = 1e-4;
+  CalibrationEngine e(rig.truth.size(), o);
+  rig.listen(e);
+  present_start_view(e, rig);
+  for (int k = 0;
+       k < 14 && e.state() != EngineState::kFailed && e.state() != EngineState::kConverged; ++k) {
+    ASSERT_TRUE(e.target());
+    hold_until_capture(e, rig.camera, e.target()->T_cam_board, true, 12);
+  }
+  EXPECT_EQ(e.state(), EngineState::kFailed);
+  EXPECT_EQ(e.keyframes(), 9);
+  EXPECT_NE(e.failure_reason().find("every parameter passed the ratio test"), std::string::npos)
+      << e.failure_reason();
+  EXPECT_NE(e.failure_reason().find("ratio_stop_max_p90_px"), std::string::npos);
+  ASSERT_GE(rig.count(EngineEvent::Kind::kParameterReopened), 1);
+  for (const EngineEvent& ev : rig.events) {
+    if (ev.kind != EngineEvent::Kind::kParameterReopened) continue;
+    EXPECT_FALSE(ev.parameter.empty());
+    EXPECT_NE(ev.message.find("holds it back"), std::string::npos) << ev.message;
+  }
+  // The result is kept and says what it is.
+  ASSERT_NE(e.result(), nullptr);
+  EXPECT_FALSE(e.converged());
+
+  EngineOptions paper;
+  paper.set_method(EngineOptions::Method::kPaper);
+  EXPECT_EQ(paper.ratio_stop_max_p90_px, 0);
+  paper.set_method(EngineOptions::Method::kPosecal);
+  EXPECT_EQ(paper.ratio_stop_max_p90_px, EngineOptions{}.ratio_stop_max_p90_px);
+  paper.ratio_stop_max_p90_px = -1;
+  std::string why;
+  EXPECT_FALSE(paper.is_valid(&why));
+  EXPECT_NE(why.find("ratio_stop_max_p90_px"), std::string::npos) << why;
+}
+
 TEST(Engine, DegenerateKeyframeIsRejectedAndTheTargetKept) {
   Rig rig;
   EngineOptions o;

@@ -381,8 +381,8 @@ class Context(_Handle):
         jaccard_threshold, still_motion_px, track_board, constraint_factor, target_timeout_frames,
         pose_candidates, lock_settings, max_tilt_deg, lens_model, fixed, convergence_measure,
         measured_convergence, candidate_score, view_candidates, view_must_serve_target,
-        board_timeout_s, accuracy_px, journal, journal_images, resume, spec, records, records_spool,
-        fleet_outlier_probability, prior, run_id, station_id, operator_id, lens_id.
+        board_timeout_s, accuracy_px, ratio_stop_max_p90_px, journal, journal_images, resume, spec,
+        records, records_spool, fleet_outlier_probability, prior, run_id, station_id, operator_id, lens_id.
         lens_model="auto" lets the engine choose the lens model by the BIC (the result's
         lens_model_choice holds the evidence)."""
         return Session(self, uri, **config)
