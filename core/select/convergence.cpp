@@ -96,6 +96,11 @@ std::string px_text(double px) {
   return buf;
 }
 
+// "X px (90th percentile; RMS Y px)": the expected error as every message about it names it.
+std::string expected_text(const ExpectedError& e) {
+  return px_text(e.p90_px) + " (90th percentile; RMS " + px_text(e.rms_px) + ")";
+}
+
 }  // namespace
 
 void CalibrationEngine::Impl::continue_towards_accuracy() {
@@ -106,8 +111,8 @@ void CalibrationEngine::Impl::continue_towards_accuracy() {
   const double goal = *opt.accuracy_px;
   // (Not while a parameter is held: the expected error does not see a held guess.)
   if (expected->p90_px <= goal && held_pending() < 0) {  // false for NaN
-    const std::string why = "expected error " + px_text(expected->p90_px) + " (90th percentile; RMS " +
-                            px_text(expected->rms_px) + ") <= accuracy_px " + px_text(goal);
+    const std::string why =
+        "expected error " + expected_text(*expected) + " <= accuracy_px " + px_text(goal);
     for (int i = 0; i < estimate.num_params(); ++i)
       if (!param_converged[i]) mark_converged(i, why);
     target.reset();
@@ -131,9 +136,8 @@ bool CalibrationEngine::Impl::reopen_above_ceiling() {
   EngineEvent e{EngineEvent::Kind::kParameterReopened};
   e.parameter = estimate.param_names()[param];
   e.message = "every parameter passed the ratio test, but the expected error is " +
-              px_text(expected->p90_px) + " (90th percentile; RMS " + px_text(expected->rms_px) +
-              "), above ratio_stop_max_p90_px " + px_text(ceiling) + "; " + e.parameter +
-              " holds it back (" + percent_text(expected->limiting_share) +
+              expected_text(*expected) + ", above ratio_stop_max_p90_px " + px_text(ceiling) +
+              "; " + e.parameter + " holds it back (" + percent_text(expected->limiting_share) +
               " of the squared error)";
   emit(e);
   set_state(EngineState::kRefining);
@@ -144,14 +148,14 @@ bool CalibrationEngine::Impl::reopen_above_ceiling() {
 std::string CalibrationEngine::Impl::ceiling_shortfall() const {
   return "keyframe cap (" + std::to_string(opt.max_keyframes) +
          ") reached: every parameter passed the ratio test, but the expected error is " +
-         px_text(expected->p90_px) + " (90th percentile; RMS " + px_text(expected->rms_px) +
-         "), above ratio_stop_max_p90_px " + px_text(opt.ratio_stop_max_p90_px);
+         expected_text(*expected) + ", above ratio_stop_max_p90_px " +
+         px_text(opt.ratio_stop_max_p90_px);
 }
 
 std::string CalibrationEngine::Impl::accuracy_shortfall() const {
-  std::string why = "keyframe cap (" + std::to_string(opt.max_keyframes) + ") reached with an expected error of " +
-                    px_text(expected->p90_px) + " (90th percentile; RMS " + px_text(expected->rms_px) +
-                    "), above accuracy_px " + px_text(*opt.accuracy_px);
+  std::string why = "keyframe cap (" + std::to_string(opt.max_keyframes) +
+                    ") reached with an expected error of " + expected_text(*expected) +
+                    ", above accuracy_px " + px_text(*opt.accuracy_px);
   if (expected->limiting_param >= 0) {
     why += "; " + estimate.param_names()[expected->limiting_param] +
            " holds it back (knowing it exactly would remove " + percent_text(expected->limiting_share) +
