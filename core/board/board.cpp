@@ -334,6 +334,36 @@ std::optional<cv::Point2d> grid_step(const cv::Point2f* before, const cv::Point2
   return std::nullopt;
 }
 
+// The steps along the board's two axes at corner `id` (ChArUco numbering, `corners_per_row` a
+// row) from an affine map of board grid to image fitted to the detected corners within two grid
+// steps of it (Chebyshev), the corner among them; none unless they span two rows and two columns
+// and five or more are found (so a missing neighbour leaves enough to fit).
+std::optional<std::pair<cv::Point2d, cv::Point2d>> local_grid_steps(
+    const std::vector<int>& ids, const std::vector<cv::Point2f>& corners, int corners_per_row,
+    int id) {
+  constexpr int kReach = 2;
+  const int col = id % corners_per_row, row = id / corners_per_row;
+  cv::Matx33d normal = cv::Matx33d::zeros();
+  cv::Matx32d rhs = cv::Matx32d::zeros();
+  int n = 0, cols_lo = col, cols_hi = col, rows_lo = row, rows_hi = row;
+  for (size_t k = 0; k < ids.size(); ++k) {
+    const int c = ids[k] % corners_per_row - col, r = ids[k] / corners_per_row - row;
+    if (std::abs(c) > kReach || std::abs(r) > kReach) continue;
+    const cv::Vec3d x(c, r, 1);
+    normal += x * x.t();
+    rhs += x * cv::Matx12d(corners[k].x, corners[k].y);
+    cols_lo = std::min(cols_lo, col + c);
+    cols_hi = std::max(cols_hi, col + c);
+    rows_lo = std::min(rows_lo, row + r);
+    rows_hi = std::max(rows_hi, row + r);
+    ++n;
+  }
+  if (n < 5 || cols_lo == cols_hi || rows_lo == rows_hi) return std::nullopt;
+  cv::Matx32d a;
+  if (!cv::solve(normal, rhs, a, cv::DECOMP_LU)) return std::nullopt;  // the corners on one line
+  return std::pair{cv::Point2d(a(0, 0), a(0, 1)), cv::Point2d(a(1, 0), a(1, 1))};
+}
+
 // cornerSubPix on one corner with a window of half-size `hw`; `smooth`: on the frame smoothed by
 // kRefineSmoothingPx, on a patch about the corner (the pixels beyond it taken from the frame, not
 // mirrored) wide enough for its window, the corner's movement and the kernel, so the cost stays
@@ -367,7 +397,10 @@ cv::Point2f refine_corner(const cv::Mat& gray, cv::Point2f corner, int hw, bool 
 // and pulls the corner several pixels off (docs/benchmarks.md, "The corner detector's bias").
 // A corner whose markers come closer than kMinClearancePx is dropped: no window both sees the
 // saddle and misses the markers. A window clear of the markers sees the image smoothed
-// (kRefineSmoothingPx).
+// (kRefineSmoothingPx). A corner with no detected neighbour along one axis takes that axis from
+// the corners about it (local_grid_steps); only one without enough of them keeps OpenCV's
+// refinement (on a 110-degree lens 45 degrees off the axis such corners had kept biases of up to
+// 1.03 px; docs/benchmarks.md, "Corners at the edge of what was detected").
 void refine_charuco_corners(const cv::Mat& gray, int corners_per_row, double marker_inset,
                             std::vector<int>* ids, std::vector<cv::Point2f>* corners) {
   constexpr double kMinClearancePx = kMarginPx + 1.0;
@@ -386,9 +419,16 @@ void refine_charuco_corners(const cv::Mat& gray, int corners_per_row, double mar
                                0);  // 0: isolated (OpenCV's refinement kept) or dropped
   for (size_t i = 0; i < ids->size(); ++i) {
     const int id = (*ids)[i], col = id % corners_per_row;
-    const auto ju = step(id, col > 0 ? id - 1 : -1, col + 1 < corners_per_row ? id + 1 : -1);
-    const auto jv = step(id, id - corners_per_row, id + corners_per_row);
-    if (!ju || !jv) continue;  // isolated corner: keep OpenCV's refinement
+    auto ju = step(id, col > 0 ? id - 1 : -1, col + 1 < corners_per_row ? id + 1 : -1);
+    auto jv = step(id, id - corners_per_row, id + corners_per_row);
+    // A corner without a neighbour along one of the board's axes (at the image's edge, or next
+    // to markers not found): that axis from the corners about it.
+    if (!ju || !jv) {
+      const auto local = local_grid_steps(*ids, *corners, corners_per_row, id);
+      if (!local) continue;  // isolated corner: keep OpenCV's refinement
+      if (!ju) ju = local->first;
+      if (!jv) jv = local->second;
+    }
     const double d = std::min(cv::norm(*ju), cv::norm(*jv));
     const double clearance = marker_clearance_px(*ju, *jv, marker_inset);
     if (clearance < kMinClearancePx) {
