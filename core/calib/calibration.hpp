@@ -73,6 +73,11 @@ enum class SolverTermination {
 };
 const char* solver_termination_name(SolverTermination t);  // "convergence", "no_convergence"
 
+// The weak prior a held parameter is freed under where its uncertainty is needed (the expected
+// error, the engine's scoring of the poses that could determine it): a standard deviation of 1
+// in the coefficient's own unit, wide against the rational coefficients' effect at the rim.
+inline constexpr double kHeldPriorStd = 1.0;
+
 struct CalibrationResult {
   CameraModel model;
   std::vector<Pose> poses;  // T_cam_board per frame
@@ -81,6 +86,14 @@ struct CalibrationResult {
   // the order they were held, with the reason (the rank deficiency that named each).
   std::vector<std::string> held;
   std::string held_reason;
+  // With parameters held: the intrinsics' covariance (num_params() square, marginal over the
+  // poses, zero rows for the fixed ones) with the held ones free under a prior of kHeldPriorStd
+  // each, from the frames' information at the solution. Like `covariance` it is multiplied by
+  // residual_variance to give the covariance at the measured noise; the prior is absolute (it
+  // does not scale with the noise). A held value is a guess the keyframes did not confirm: the
+  // expected error takes its uncertainty from here, so that a guess counts as unknown, not as
+  // known. Empty when nothing is held.
+  Eigen::MatrixXd held_covariance;
   int num_points = 0;
   int num_unknowns = 0;  // free intrinsics + 6 per frame
   int iterations = 0;

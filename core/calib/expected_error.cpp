@@ -26,18 +26,37 @@ void check_grid(const CalibrationResult& r, int cols, int rows) {
   }
 }
 
+// The intrinsics the figure is over, and their covariance at unit noise: the free ones, and with
+// parameters held the held ones too, under their weak prior (CalibrationResult::held_covariance).
+struct Uncertain {
+  std::vector<int> idx;
+  Eigen::MatrixXd C;
+};
+
+Uncertain uncertain_intrinsics(const CalibrationResult& r) {
+  const Eigen::Index n = r.model.num_params();
+  const bool with_held =
+      !r.held.empty() && r.held_covariance.rows() == n && r.held_covariance.cols() == n;
+  std::vector<bool> open = r.fixed;
+  if (with_held) {
+    const std::vector<std::string>& names = r.model.param_names();
+    for (const std::string& h : r.held) {
+      const auto it = std::find(names.begin(), names.end(), h);
+      if (it != names.end()) open[static_cast<size_t>(it - names.begin())] = false;
+    }
+  }
+  Uncertain u{free_intrinsics(open), {}};
+  const Eigen::MatrixXd& cov = with_held ? r.held_covariance : r.covariance;
+  const Eigen::Index m = static_cast<Eigen::Index>(u.idx.size());
+  u.C.resize(m, m);
+  for (Eigen::Index a = 0; a < m; ++a)
+    for (Eigen::Index b = 0; b < m; ++b) u.C(a, b) = cov(u.idx[a], u.idx[b]);
+  return u;
+}
+
 // Pixel of grid point (i, j), edge to edge.
 Eigen::Vector2d grid_pixel(const CameraModel& m, int i, int j, int cols, int rows) {
   return {i * (m.width() - 1.0) / (cols - 1), j * (m.height() - 1.0) / (rows - 1)};
-}
-
-// The covariance of the free intrinsics at unit noise (marginal over the poses).
-Eigen::MatrixXd free_covariance(const CalibrationResult& r, const std::vector<int>& free_idx) {
-  const Eigen::Index m = static_cast<Eigen::Index>(free_idx.size());
-  Eigen::MatrixXd C(m, m);
-  for (Eigen::Index a = 0; a < m; ++a)
-    for (Eigen::Index b = 0; b < m; ++b) C(a, b) = r.covariance(free_idx[a], free_idx[b]);
-  return C;
 }
 
 // Mean and 90th percentile of the mean over the grid of |J_p e|, e ~ N(0, C): `jacobians` stacks
@@ -80,7 +99,9 @@ void distance_distribution(const Eigen::MatrixXd& jacobians, const Eigen::Matrix
 ExpectedError expected_error(const CalibrationResult& result, int cols, int rows) {
   check_grid(result, cols, rows);
   const CameraModel& model = result.model;
-  const std::vector<int> free_idx = free_intrinsics(result.fixed);
+  const Uncertain u = uncertain_intrinsics(result);
+  const std::vector<int>& free_idx = u.idx;
+  const Eigen::MatrixXd& C = u.C;
   const Eigen::Index m = static_cast<Eigen::Index>(free_idx.size());
   Eigen::MatrixXd G = Eigen::MatrixXd::Zero(m, m);  // mean of J^T J over the grid
   Eigen::Matrix<double, 2, Eigen::Dynamic> J(2, m);
@@ -100,7 +121,6 @@ ExpectedError expected_error(const CalibrationResult& result, int cols, int rows
     return out;
   }
   G /= out.points;
-  const Eigen::MatrixXd C = free_covariance(result, free_idx);
   const double ms_unit = std::max(0.0, (G * C).trace());
   out.rms_unit_px = std::sqrt(ms_unit);
   const double noise_variance = std::max(0.0, result.residual_variance);
@@ -122,9 +142,9 @@ ExpectedError expected_error(const CalibrationResult& result, int cols, int rows
 cv::Mat expected_error_map(const CalibrationResult& result, int cols, int rows) {
   check_grid(result, cols, rows);
   const CameraModel& model = result.model;
-  const std::vector<int> free_idx = free_intrinsics(result.fixed);
-  const Eigen::MatrixXd C =
-      free_covariance(result, free_idx) * std::max(0.0, result.residual_variance);
+  const Uncertain u = uncertain_intrinsics(result);
+  const std::vector<int>& free_idx = u.idx;
+  const Eigen::MatrixXd C = u.C * std::max(0.0, result.residual_variance);
   Eigen::Matrix<double, 2, Eigen::Dynamic> J(2, static_cast<Eigen::Index>(free_idx.size()));
   Eigen::Matrix<double, 2, Eigen::Dynamic> JC(2, static_cast<Eigen::Index>(free_idx.size()));
   cv::Mat map(rows, cols, CV_32F);

@@ -270,6 +270,47 @@ Eigen::MatrixXd intrinsics_information(const CalibrationResult& result) {
   return C.ldlt().solve(Eigen::MatrixXd::Identity(m, m));
 }
 
+Eigen::MatrixXd information_with_held(const CalibrationResult& result,
+                                      const std::vector<Observation>& frames, double held_prior,
+                                      std::vector<bool>* open, double aspect) {
+  if (frames.size() != result.poses.size())
+    throw Error(ErrorCode::kInvalidArgument,
+                "information_with_held: one frame per pose of the result");
+  const std::vector<std::string>& names = result.model.param_names();
+  *open = result.fixed;
+  std::vector<int> held_idx;
+  for (const std::string& h : result.held) {
+    const auto it = std::find(names.begin(), names.end(), h);
+    if (it == names.end())
+      throw Error(ErrorCode::kInvalidArgument,
+                  "information_with_held: unknown held parameter " + h);
+    held_idx.push_back(static_cast<int>(it - names.begin()));
+    (*open)[static_cast<size_t>(held_idx.back())] = false;
+  }
+  // With a tied fy, the information over (fx, fy, ...) first, then x = T x' with fy = aspect fx.
+  const bool tied = aspect > 0 && !(*open)[0] && (*open)[1];
+  std::vector<bool> with_fy = *open;
+  if (tied) with_fy[1] = false;
+  const int m = static_cast<int>(std::count(with_fy.begin(), with_fy.end(), false));
+  Eigen::MatrixXd info = Eigen::MatrixXd::Zero(m, m);
+  for (size_t k = 0; k < frames.size(); ++k)
+    info += frame_information(result.model, result.poses[k], frames[k].board_points, with_fy);
+  for (int h : held_idx) {
+    const int k = static_cast<int>(std::count(with_fy.begin(), with_fy.begin() + h, false));
+    info(k, k) += held_prior;
+  }
+  if (!tied) return info;
+  Eigen::MatrixXd T = Eigen::MatrixXd::Zero(m, m - 1);
+  for (int a = 0, b = 0; a < m; ++a) {
+    if (a == 1) {
+      T(1, 0) = aspect;  // fx is free and first, fy second
+      continue;
+    }
+    T(a, b++) = 1;
+  }
+  return T.transpose() * info * T;
+}
+
 std::vector<int> free_intrinsics(const std::vector<bool>& fixed) {
   std::vector<int> free_idx;
   for (size_t i = 0; i < fixed.size(); ++i)

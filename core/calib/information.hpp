@@ -49,6 +49,17 @@ void corner_quadrature(const std::vector<cv::Point3d>& corners, int nodes_x, int
 // Marginal information of the free intrinsics from a result: inverse of their covariance block.
 Eigen::MatrixXd intrinsics_information(const CalibrationResult& result);
 
+// Marginal information (Sigma_p = I) of the intrinsics a result left free or held: the sum of
+// each frame's frame_information() at the solution (result.poses, one per frame of `frames`),
+// plus `held_prior` on the held ones' diagonal (a weak prior that bounds the direction the frames
+// leave undetermined). In the order of the false entries of *open, which it sets to result.fixed
+// with the held parameters opened. aspect > 0: the calibration tied fy to aspect * fx (fy is
+// fixed in result.fixed), and fy's information is folded onto fx. A prior of the calibration is
+// not included. Throws Error(kInvalidArgument) if the frames do not match the result's poses.
+Eigen::MatrixXd information_with_held(const CalibrationResult& result,
+                                      const std::vector<Observation>& frames, double held_prior,
+                                      std::vector<bool>* open, double aspect = 0);
+
 // The indices of the intrinsics that are not fixed, in order.
 std::vector<int> free_intrinsics(const std::vector<bool>& fixed);
 

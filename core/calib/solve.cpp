@@ -14,6 +14,7 @@
 #include <opencv2/calib3d.hpp>
 
 #include "calib/calibration.hpp"
+#include "calib/information.hpp"
 #include "calib/pose_estimation.hpp"
 #include "calib/solve_internal.hpp"
 #include "common/error.hpp"
@@ -478,6 +479,63 @@ namespace {
 CalibrationResult calibrate_once(const std::vector<Observation>& frames, cv::Size image_size,
                                  const CalibrationOptions& options, const WarmStart* warm_start);
 
+// CalibrationResult::held_covariance: information_with_held() with the calibration's prior and
+// tied aspect ratio, inverted with Jacobi scaling (the parameters' units differ by orders of
+// magnitude); fy's rows follow fx's when tied, as in the calibration's own covariance. The held
+// prior is absolute (kHeldPriorStd whatever the noise), so at unit noise it weighs
+// sigma^2 / kHeldPriorStd^2, sigma^2 the residual variance (at least kMinHeldNoiseVariance:
+// noise-free data would otherwise leave the held direction unbounded in floating point).
+constexpr double kMinHeldNoiseVariance = 1e-6;  // (0.001 px)^2
+
+Eigen::MatrixXd held_covariance(const CalibrationResult& r, const std::vector<Observation>& frames,
+                                const CalibrationOptions& options) {
+  const double aspect = options.fix_aspect_ratio ? r.model.fy() / r.model.fx() : 0.0;
+  const double noise = std::max(r.residual_variance, kMinHeldNoiseVariance);
+  std::vector<bool> open;
+  Eigen::MatrixXd info =
+      information_with_held(r, frames, noise / (kHeldPriorStd * kHeldPriorStd), &open, aspect);
+  const std::vector<int> idx = free_intrinsics(open);
+  const std::vector<std::string>& names = r.model.param_names();
+  if (options.prior) {
+    // Its term's J^T J: noise_px^2 times the inverse of its covariance, over the names it holds.
+    const IntrinsicsPrior& p = *options.prior;
+    const Eigen::MatrixXd pinfo = p.covariance.inverse() * (p.noise_px * p.noise_px);
+    const auto at = [&](const std::string& name) {
+      const int i = static_cast<int>(std::find(names.begin(), names.end(), name) - names.begin());
+      return static_cast<int>(std::find(idx.begin(), idx.end(), i) - idx.begin());
+    };
+    for (size_t a = 0; a < p.names.size(); ++a) {
+      for (size_t b = 0; b < p.names.size(); ++b) {
+        const int pa = at(p.names[a]), pb = at(p.names[b]);
+        if (pa < info.rows() && pb < info.rows()) info(pa, pb) += pinfo(a, b);
+      }
+    }
+  }
+  const Eigen::Index m = info.rows();
+  Eigen::VectorXd scale(m);
+  for (Eigen::Index a = 0; a < m; ++a)
+    scale[a] = info(a, a) > 0 ? 1.0 / std::sqrt(info(a, a)) : 0.0;
+  const Eigen::MatrixXd A = scale.asDiagonal() * info * scale.asDiagonal();
+  const Eigen::LDLT<Eigen::MatrixXd> ldlt(A);
+  const Eigen::MatrixXd C =
+      scale.asDiagonal() * ldlt.solve(Eigen::MatrixXd::Identity(m, m)) * scale.asDiagonal();
+  const int n = r.model.num_params();
+  Eigen::MatrixXd out = Eigen::MatrixXd::Zero(n, n);
+  for (Eigen::Index a = 0; a < m; ++a)
+    for (Eigen::Index b = 0; b < m; ++b) out(idx[a], idx[b]) = C(a, b);
+  if (aspect > 0 && !open[0]) {
+    out.row(1) = out.row(0) * aspect;
+    out.col(1) = out.col(0) * aspect;
+    out(1, 1) = out(0, 0) * aspect * aspect;
+  }
+  if (ldlt.info() != Eigen::Success || !out.allFinite()) {
+    throw Error(
+        ErrorCode::kDegenerate,
+        "calibration: the held parameters' covariance is not finite (" + r.held_reason + ")");
+  }
+  return out;
+}
+
 }  // namespace
 
 CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size image_size,
@@ -495,6 +553,7 @@ CalibrationResult calibrate(const std::vector<Observation>& frames, cv::Size ima
       CalibrationResult r = calibrate_once(frames, image_size, held, warm_start);
       r.held = names;
       r.held_reason = reason;
+      if (!names.empty()) r.held_covariance = held_covariance(r, frames, held);
       return r;
     } catch (const calib_internal::Undetermined& e) {
       // The holdable parameter that moves most along the undetermined direction (also when

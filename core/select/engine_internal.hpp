@@ -62,7 +62,6 @@ struct CalibrationEngine::Impl {
   // held parameter is targeted (held_pending) the held ones too, under a weak prior
   // (kHeldPriorStd): a candidate is then scored by how well it would determine them.
   std::vector<bool> scoring_fixed;
-  static constexpr double kHeldPriorStd = 1.0;
   Eigen::MatrixXd gram;         // projection_gram() of the estimate (projection scoring)
   // EngineOptions::view_candidates: the pool for the next choice, drawn frame by frame, and the
   // pool of the last choice (for replacing skipped targets).

@@ -228,23 +228,8 @@ void CalibrationEngine::Impl::prepare_scoring() {
     // The held parameters freed: the keyframes' information (each frame's Schur complement onto
     // the intrinsics, as the calibration's own covariance is made) plus a weak prior on the held
     // ones, whose direction the keyframes leave (nearly) undetermined.
-    const std::vector<std::string>& names = estimate.param_names();
-    std::vector<int> held_idx;
-    for (const std::string& h : result->held) {
-      const auto it = std::find(names.begin(), names.end(), h);
-      if (it == names.end()) continue;
-      held_idx.push_back(static_cast<int>(it - names.begin()));
-      scoring_fixed[static_cast<size_t>(held_idx.back())] = false;
-    }
-    const int n = static_cast<int>(std::count(scoring_fixed.begin(), scoring_fixed.end(), false));
-    information = Eigen::MatrixXd::Zero(n, n);
-    for (size_t k = 0; k < keyframes.size(); ++k)
-      information +=
-          frame_information(estimate, result->poses[k], keyframes[k].board_points, scoring_fixed);
-    for (int h : held_idx) {
-      const int k = free_position(h);
-      information(k, k) += 1.0 / (kHeldPriorStd * kHeldPriorStd);
-    }
+    information = information_with_held(*result, keyframes, 1.0 / (kHeldPriorStd * kHeldPriorStd),
+                                        &scoring_fixed);
   } else {
     information = intrinsics_information(basis());
   }

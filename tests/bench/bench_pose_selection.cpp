@@ -348,10 +348,24 @@ Run closed_loop(const World& world, const CameraModel& truth, const BoardSpec& t
       std::fprintf(stderr, "\n");
     });
   }
+  // POSECAL_BENCH_TRACE=frames: every frame's report too (corners, Jaccard against the target,
+  // stillness, capture).
+  static const bool trace_frames =
+      trace && std::string(std::getenv("POSECAL_BENCH_TRACE")) == "frames";
   Run r;
   for (int f = 0; f < 3000 && !session.finished(); ++f) {
     session.step(1000);
     if (session.frames_processed() == 0) continue;
+    if (trace_frames && session.has_engine()) {
+      const FrameReport& fr = session.engine().last_report();
+      std::fprintf(stderr,
+                   "[%llu %s]   frame %llu %s target %s corners %d/%d jaccard %.3f still %d "
+                   "reached %d captured %d\n",
+                   static_cast<unsigned long long>(seed), config.c_str(),
+                   static_cast<unsigned long long>(fr.frame_index), engine_state_name(fr.state),
+                   fr.target_parameter.c_str(), fr.corners, fr.corners_required, fr.jaccard,
+                   fr.still ? 1 : 0, fr.pose_reached ? 1 : 0, fr.captured ? 1 : 0);
+    }
     const EngineState st = session.engine().state();
     if (r.bootstrap_frames < 0 && st != EngineState::kWaitingForBoard && st != EngineState::kBootstrapping)
       r.bootstrap_frames = static_cast<int>(session.frames_processed());
