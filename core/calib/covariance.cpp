@@ -106,12 +106,7 @@ Eigen::MatrixXd ambient_covariance(const Eigen::MatrixXd& cov_tangent, const Cov
   Eigen::MatrixXd cov = Eigen::MatrixXd::Zero(n_amb, n_amb);
   for (int a = 0; a < n_cols; ++a)
     for (int b = 0; b < n_cols; ++b) cov((*amb_of_tangent)[a], (*amb_of_tangent)[b]) = cov_tangent(a, b);
-  if (in.aspect > 0) {
-    // fy = aspect * fx: its variance follows from fx's.
-    cov.row(1) = cov.row(0) * in.aspect;
-    cov.col(1) = cov.col(0) * in.aspect;
-    cov(1, 1) = cov(0, 0) * in.aspect * in.aspect;
-  }
+  if (in.aspect > 0) tie_fy_to_fx(in.aspect, &cov);
   return cov;
 }
 
@@ -156,6 +151,12 @@ void check_determined(const CalibrationResult& res, const CovarianceInput& in, c
 }
 
 }  // namespace
+
+void tie_fy_to_fx(double aspect, Eigen::MatrixXd* cov) {
+  cov->row(1) = cov->row(0) * aspect;
+  cov->col(1) = cov->col(0) * aspect;
+  (*cov)(1, 1) = (*cov)(0, 0) * aspect * aspect;
+}
 
 void covariance_at_solution(ceres::Problem& problem, Solution& solution, const CovarianceInput& in,
                             CalibrationResult* res) {

@@ -37,15 +37,7 @@ Uncertain uncertain_intrinsics(const CalibrationResult& r) {
   const Eigen::Index n = r.model.num_params();
   const bool with_held =
       !r.held.empty() && r.held_covariance.rows() == n && r.held_covariance.cols() == n;
-  std::vector<bool> open = r.fixed;
-  if (with_held) {
-    const std::vector<std::string>& names = r.model.param_names();
-    for (const std::string& h : r.held) {
-      const auto it = std::find(names.begin(), names.end(), h);
-      if (it != names.end()) open[static_cast<size_t>(it - names.begin())] = false;
-    }
-  }
-  Uncertain u{free_intrinsics(open), {}};
+  Uncertain u{free_intrinsics(with_held ? fixed_with_held_open(r) : r.fixed), {}};
   const Eigen::MatrixXd& cov = with_held ? r.held_covariance : r.covariance;
   const Eigen::Index m = static_cast<Eigen::Index>(u.idx.size());
   u.C.resize(m, m);

@@ -270,23 +270,33 @@ Eigen::MatrixXd intrinsics_information(const CalibrationResult& result) {
   return C.ldlt().solve(Eigen::MatrixXd::Identity(m, m));
 }
 
+std::vector<int> held_indices(const CalibrationResult& result) {
+  const std::vector<std::string>& names = result.model.param_names();
+  std::vector<int> idx;
+  for (const std::string& h : result.held) {
+    const auto it = std::find(names.begin(), names.end(), h);
+    if (it == names.end())
+      throw Error(ErrorCode::kInvalidArgument, "unknown held parameter '" + h + "' of " +
+                                                   lens_model_name(result.model.lens_model()));
+    idx.push_back(static_cast<int>(it - names.begin()));
+  }
+  return idx;
+}
+
+std::vector<bool> fixed_with_held_open(const CalibrationResult& result) {
+  std::vector<bool> open = result.fixed;
+  for (int h : held_indices(result)) open.at(static_cast<size_t>(h)) = false;
+  return open;
+}
+
 Eigen::MatrixXd information_with_held(const CalibrationResult& result,
                                       const std::vector<Observation>& frames, double held_prior,
                                       std::vector<bool>* open, double aspect) {
   if (frames.size() != result.poses.size())
     throw Error(ErrorCode::kInvalidArgument,
                 "information_with_held: one frame per pose of the result");
-  const std::vector<std::string>& names = result.model.param_names();
-  *open = result.fixed;
-  std::vector<int> held_idx;
-  for (const std::string& h : result.held) {
-    const auto it = std::find(names.begin(), names.end(), h);
-    if (it == names.end())
-      throw Error(ErrorCode::kInvalidArgument,
-                  "information_with_held: unknown held parameter " + h);
-    held_idx.push_back(static_cast<int>(it - names.begin()));
-    (*open)[static_cast<size_t>(held_idx.back())] = false;
-  }
+  const std::vector<int> held_idx = held_indices(result);
+  *open = fixed_with_held_open(result);
   // With a tied fy, the information over (fx, fy, ...) first, then x = T x' with fy = aspect fx.
   const bool tied = aspect > 0 && !(*open)[0] && (*open)[1];
   std::vector<bool> with_fy = *open;

@@ -49,6 +49,13 @@ void corner_quadrature(const std::vector<cv::Point3d>& corners, int nodes_x, int
 // Marginal information of the free intrinsics from a result: inverse of their covariance block.
 Eigen::MatrixXd intrinsics_information(const CalibrationResult& result);
 
+// The positions of result.held among the model's parameters, in the order held. Throws
+// Error(kInvalidArgument) naming a held name the model does not have.
+std::vector<int> held_indices(const CalibrationResult& result);
+
+// result.fixed with the held parameters opened: the intrinsics a result left free or held.
+std::vector<bool> fixed_with_held_open(const CalibrationResult& result);
+
 // Marginal information (Sigma_p = I) of the intrinsics a result left free or held: the sum of
 // each frame's frame_information() at the solution (result.poses, one per frame of `frames`),
 // plus `held_prior` on the held ones' diagonal (a weak prior that bounds the direction the frames

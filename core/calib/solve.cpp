@@ -523,11 +523,7 @@ Eigen::MatrixXd held_covariance(const CalibrationResult& r, const std::vector<Ob
   Eigen::MatrixXd out = Eigen::MatrixXd::Zero(n, n);
   for (Eigen::Index a = 0; a < m; ++a)
     for (Eigen::Index b = 0; b < m; ++b) out(idx[a], idx[b]) = C(a, b);
-  if (aspect > 0 && !open[0]) {
-    out.row(1) = out.row(0) * aspect;
-    out.col(1) = out.col(0) * aspect;
-    out(1, 1) = out(0, 0) * aspect * aspect;
-  }
+  if (aspect > 0 && !open[0]) calib_internal::tie_fy_to_fx(aspect, &out);
   if (ldlt.info() != Eigen::Success || !out.allFinite()) {
     throw Error(
         ErrorCode::kDegenerate,

@@ -65,4 +65,9 @@ class FocalUnobservable : public Error {
 void covariance_at_solution(ceres::Problem& problem, Solution& solution, const CovarianceInput& in,
                             CalibrationResult* res);
 
+// fy = aspect * fx (CalibrationOptions::fix_aspect_ratio; fy is not a parameter of the
+// adjustment): fy's row and column of a covariance in the ambient order (fx first, fy second)
+// follow fx's.
+void tie_fy_to_fx(double aspect, Eigen::MatrixXd* cov);
+
 }  // namespace posecal::calib_internal

@@ -74,6 +74,12 @@ struct CalibrationFileExtras {
   // The intrinsics covariance (scaled by the residual variance, as the result JSON's
   // "covariance"), num_params x num_params row-major; omitted if empty.
   std::vector<double> covariance;
+  // The coefficients the keyframes did not determine (CalibrationResult::held) and the
+  // covariance with them free under their prior (CalibrationResult::held_covariance, scaled as
+  // `covariance`), num_params x num_params row-major; both omitted if `held` is empty. The
+  // expected error (and its map) is taken over these when present.
+  std::vector<std::string> held;
+  std::vector<double> held_covariance;
   double expected_error_px = -1;  // the expected projection error, RMS px; omitted if < 0
   std::optional<bool> converged;  // the session's outcome; omitted if unset
   std::optional<bool> interrupted;

@@ -6,6 +6,7 @@
 #include <opencv2/core/persistence.hpp>
 #include <optional>
 #include <set>
+#include <sstream>
 #include <string_view>
 
 #include "common/clock.hpp"
@@ -351,8 +352,9 @@ const std::set<std::string>& known_keys() {
       // posecal
       "calibration_time", "nr_of_frames", "image_width", "image_height", "lens_model",
       "distortion_model", "camera_matrix", "distortion_coefficients", "avg_reprojection_error",
-      "intrinsic_names", "std_deviations_intrinsics", "intrinsics_covariance", "expected_error_px",
-      "target", "camera_uri", "camera_id", "converged", "interrupted", kModelFileEndKey,
+      "intrinsic_names", "std_deviations_intrinsics", "intrinsics_covariance", "held_intrinsics",
+      "held_intrinsics_covariance", "expected_error_px", "target", "camera_uri", "camera_id",
+      "converged", "interrupted", kModelFileEndKey,
       // OpenCV's calibration sample
       "board_width", "board_height", "square_size", "aspectRatio", "flags", "flagValue",
       "fisheye_model", "per_view_reprojection_errors", "extrinsic_parameters", "image_points",
@@ -465,6 +467,30 @@ double read_number(const std::string& path, const cv::FileNode& n, const char* k
   return v;
 }
 
+// held_intrinsics: the names, space-separated, of parameters of `model`, each once; none if the
+// key is absent.
+std::vector<std::string> read_held(const std::string& path, const cv::FileNode& root,
+                                   const CameraModel& model) {
+  const cv::FileNode f = root["held_intrinsics"];
+  if (f.empty()) return {};
+  if (!f.isString()) bad_file(path, "'held_intrinsics' is not a string");
+  const std::vector<std::string>& names = model.param_names();
+  std::vector<std::string> held;
+  std::istringstream words(f.string());
+  for (std::string w; words >> w;) {
+    if (std::find(names.begin(), names.end(), w) == names.end()) {
+      bad_file(path, "'held_intrinsics' names '" + w + "', not a parameter of " +
+                         lens_model_name(model.lens_model()));
+    }
+    if (std::find(held.begin(), held.end(), w) != held.end()) {
+      bad_file(path, "'held_intrinsics' names '" + w + "' twice");
+    }
+    held.push_back(w);
+  }
+  if (held.empty()) bad_file(path, "'held_intrinsics' is empty");
+  return held;
+}
+
 // What posecal writes besides the model; each key checked where present.
 CalibrationFileExtras extras_from(const std::string& path, const cv::FileNode& root,
                                   const CameraModel& model) {
@@ -494,6 +520,19 @@ CalibrationFileExtras extras_from(const std::string& path, const cv::FileNode& r
       bad_file(path, "'intrinsics_covariance' is " + std::to_string(r) + "x" + std::to_string(c) +
                          "; the model has " + std::to_string(n) + " parameters");
     }
+  }
+  x.held = read_held(path, root, model);
+  if (const cv::FileNode f = root["held_intrinsics_covariance"]; !f.empty()) {
+    if (x.held.empty()) bad_file(path, "'held_intrinsics_covariance' without 'held_intrinsics'");
+    int r = 0, c = 0;
+    x.held_covariance = read_matrix(path, f, "held_intrinsics_covariance", &r, &c);
+    if (r != n || c != n) {
+      bad_file(path, "'held_intrinsics_covariance' is " + std::to_string(r) + "x" +
+                         std::to_string(c) + "; the model has " + std::to_string(n) +
+                         " parameters");
+    }
+  } else if (!x.held.empty()) {
+    bad_file(path, "'held_intrinsics' without 'held_intrinsics_covariance'");
   }
   if (const cv::FileNode f = root["converged"]; !f.empty()) {
     x.converged = read_flag(path, f, "converged");
@@ -587,7 +626,8 @@ std::string compose_opencv(const std::string& path, const CameraModel& model,
                                          : cv::FileStorage::FORMAT_YAML;
   const int n = model.num_params();
   if ((!extras.param_std.empty() && static_cast<int>(extras.param_std.size()) != n) ||
-      (!extras.covariance.empty() && static_cast<int>(extras.covariance.size()) != n * n)) {
+      (!extras.covariance.empty() && static_cast<int>(extras.covariance.size()) != n * n) ||
+      (!extras.held.empty() && static_cast<int>(extras.held_covariance.size()) != n * n)) {
     throw Error(ErrorCode::kInternal,
                 "cannot compose '" + path + "': std or covariance sized for another model");
   }
@@ -616,6 +656,12 @@ std::string compose_opencv(const std::string& path, const CameraModel& model,
   }
   if (!extras.covariance.empty()) {
     fs << "intrinsics_covariance" << row_matrix(extras.covariance, n);
+  }
+  if (!extras.held.empty()) {
+    std::string names;
+    for (const auto& name : extras.held) names += (names.empty() ? "" : " ") + name;
+    fs << "held_intrinsics" << names;
+    fs << "held_intrinsics_covariance" << row_matrix(extras.held_covariance, n);
   }
   if (extras.expected_error_px >= 0) fs << "expected_error_px" << extras.expected_error_px;
   if (extras.converged) fs << "converged" << (*extras.converged ? 1 : 0);

@@ -1,12 +1,13 @@
 #include "json_report.hpp"
-#include "abi_common.hpp"
 
 #include <cmath>
 #include <optional>
 
+#include "abi_common.hpp"
 #include "calib/expected_error.hpp"
 #include "common/error.hpp"
 #include "io/model_file.hpp"
+#include "io/result_file.hpp"
 
 namespace posecal::abi {
 
@@ -19,6 +20,21 @@ nlohmann::json device_json(const DeviceInfo& d) {
           {"serial", d.serial},
           {"transport", d.transport}};
 }
+
+namespace {
+
+// The leading n x n block of `m` as a list of rows.
+nlohmann::json rows_json(const Eigen::MatrixXd& m, int n) {
+  nlohmann::json out = nlohmann::json::array();
+  for (int a = 0; a < n; ++a) {
+    nlohmann::json row = nlohmann::json::array();
+    for (int b = 0; b < n; ++b) row.push_back(number(m(a, b)));
+    out.push_back(row);
+  }
+  return out;
+}
+
+}  // namespace
 
 nlohmann::json calibration_json(const CalibrationResult& r) {
   nlohmann::json j;
@@ -52,15 +68,13 @@ nlohmann::json calibration_json(const CalibrationResult& r) {
   j["solver_converged"] = r.solver_converged();
   j["solver_termination"] = solver_termination_name(r.termination);
   const int n = static_cast<int>(names.size());
-  const Eigen::MatrixXd cov = r.covariance_scaled();
-  nlohmann::json c = nlohmann::json::array();
-  for (int a = 0; a < n; ++a) {
-    nlohmann::json row = nlohmann::json::array();
-    for (int b = 0; b < n; ++b) row.push_back(number(cov(a, b)));
-    c.push_back(row);
-  }
-  j["covariance"] = c;
+  j["covariance"] = rows_json(r.covariance_scaled(), n);
   j["covariance_order"] = names;
+  // With coefficients held: the covariance with them free under their prior, scaled likewise
+  // (CalibrationResult::held_covariance); the expected error is taken over it.
+  if (!r.held.empty() && r.held_covariance.rows() == n && r.held_covariance.cols() == n) {
+    j["held_covariance"] = rows_json(r.held_covariance * r.residual_variance, n);
+  }
   const ExpectedError e = expected_error(r);
   j["expected_error_px"] = number(e.rms_px);
   j["expected_error_unit_px"] = number(e.rms_unit_px);
@@ -112,17 +126,7 @@ void save_calibration(const std::string& path, const CalibrationResult& r, const
                   std::string("unknown format '") + format + "': use one of " + names);
     }
   }
-  const int n = r.model.num_params();
-  extras.nr_of_frames = static_cast<int>(r.poses.size());
-  extras.avg_reprojection_error = r.rms_px;
-  extras.param_std = r.std_scaled;
-  const Eigen::MatrixXd cov = r.covariance_scaled();
-  extras.covariance.clear();
-  for (int a = 0; a < n; ++a) {
-    for (int b = 0; b < n; ++b) extras.covariance.push_back(cov(a, b));
-  }
-  const double expected = expected_error(r).rms_px;
-  if (std::isfinite(expected)) extras.expected_error_px = expected;
+  put_result_figures(r, &extras);
   write_camera_model(path, r.model, extras, f);
 }
 

@@ -13,6 +13,7 @@
 #include "calib/expected_error.hpp"
 #include "common/atomic_file.hpp"
 #include "io/model_file.hpp"
+#include "io/result_file.hpp"
 #include "posecal.h"
 #include "records/record_store.hpp"
 #include "records_resolve.hpp"
@@ -253,18 +254,8 @@ Report report_of_file(const std::string& path) {
   if (file.extras.nr_of_frames >= 0)
     rep.header.push_back({"keyframes", std::to_string(file.extras.nr_of_frames)});
   rep.figures.push_back(distortion_figure(model));
-  const size_t n = static_cast<size_t>(model.num_params());
-  if (file.extras.covariance.size() == n * n) {
-    CalibrationResult result;
-    result.model = model;
-    result.covariance = Eigen::MatrixXd(n, n);
-    result.fixed.assign(n, false);
-    for (size_t a = 0; a < n; ++a) {
-      for (size_t b = 0; b < n; ++b) result.covariance(a, b) = file.extras.covariance[a * n + b];
-      result.fixed[a] = result.covariance(a, a) == 0;  // posecal writes 0 for a fixed parameter
-    }
-    result.residual_variance = 1;  // the file's covariance is already scaled
-    rep.figures.push_back(expected_error_of(result));
+  if (const std::optional<CalibrationResult> result = result_figures_of(file)) {
+    rep.figures.push_back(expected_error_of(*result));
   } else {
     rep.notes.push_back(std::string("no expected-error map: the file holds no covariance of the "
                                     "intrinsics (posecal's OpenCV files do; the ") +

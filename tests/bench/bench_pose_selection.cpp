@@ -171,6 +171,10 @@ struct Run {
   // sensor is a rotation plus a principal-point shift to first order, which plain eps_gt counts.
   double eps_gt_aligned = NAN;
   double eps_res = NAN;  // the calibration's residual RMS
+  // How far the keyframes' corners reach (keyframe_reach): the largest corner radius about the
+  // principal point over the largest image corner's, and the share of the edge grid's points
+  // inside some keyframe's corner hull (the rest is extrapolated).
+  double reach_radius = NAN, reach_hull = NAN;
   std::string lens_model;     // the model calibrated (config "auto": the one chosen)
   int bootstrap_frames = -1;  // frames until the engine had a first target (-1: never)
   // --compactness: keyframes the paper's greedy test keeps for the same eps_test (§5.3).
@@ -297,6 +301,45 @@ double predicted_eps_gt(const CalibrationResult& res) {
 
 // eps_gt (mean distance) over the 40x23 edge grid's pixels whose true ray is within max_deg of
 // the axis; NaN for a model that is not a ray model.
+// Diagnostic (--csv reach_radius, reach_hull): where the keyframes' corners are, against the
+// image the expected error is taken over.
+void keyframe_reach(const CameraModel& m, const std::vector<Observation>& frames, Run* r) {
+  const cv::Point2d c(m.cx(), m.cy());
+  double r_image = 0, r_data = 0;
+  for (const cv::Point2d q :
+       {cv::Point2d(0, 0), cv::Point2d(m.width() - 1.0, 0), cv::Point2d(0, m.height() - 1.0),
+        cv::Point2d(m.width() - 1.0, m.height() - 1.0)})
+    r_image = std::max(r_image, cv::norm(q - c));
+  std::vector<std::vector<cv::Point2f>> hulls;
+  for (const Observation& o : frames) {
+    std::vector<cv::Point2f> pts;
+    for (const cv::Point2d& p : o.image_points) {
+      r_data = std::max(r_data, cv::norm(p - c));
+      pts.emplace_back(static_cast<float>(p.x), static_cast<float>(p.y));
+    }
+    if (pts.size() < 3) continue;
+    std::vector<cv::Point2f> h;
+    cv::convexHull(pts, h);
+    hulls.push_back(h);
+  }
+  const int cols = kExpectedErrorCols, rows = kExpectedErrorRows;
+  int inside = 0;
+  for (int j = 0; j < rows; ++j) {
+    for (int i = 0; i < cols; ++i) {
+      const cv::Point2f g(static_cast<float>(i * (m.width() - 1.0) / (cols - 1)),
+                          static_cast<float>(j * (m.height() - 1.0) / (rows - 1)));
+      for (const auto& h : hulls) {
+        if (cv::pointPolygonTest(h, g, false) >= 0) {
+          ++inside;
+          break;
+        }
+      }
+    }
+  }
+  r->reach_radius = r_data / r_image;
+  r->reach_hull = static_cast<double>(inside) / (cols * rows);
+}
+
 double eps_gt_within(const CameraModel& truth, const CameraModel& estimate, double max_deg) {
   if (!is_ray_model(truth.lens_model())) return NAN;
   double sum = 0;
@@ -388,6 +431,7 @@ Run closed_loop(const World& world, const CameraModel& truth, const BoardSpec& t
     r.expected_mean_px = eng.expected_error()->mean_px;
     r.expected_p90_px = eng.expected_error()->p90_px;
     r.eps_res = eng.result()->rms_px;
+    keyframe_reach(eng.estimate(), eng.keyframe_observations(), &r);
     if (g_compactness && eng.keyframes() >= 2 && !test.empty()) {
       const CompactSubset c = greedy_compact_subset(eng.keyframe_observations(), test, truth.size(), eng.options().calibration);
       r.compact_kept = static_cast<int>(c.keyframes.size());
@@ -1088,8 +1132,11 @@ bool write_csv(const std::string& path, const std::vector<std::pair<World, std::
     std::fprintf(stderr, "cannot write %s\n", path.c_str());
     return false;
   }
-  std::fprintf(f, "seed,method,converged,keyframes,frames,eps_test,eps_gt,eps_gt_pinhole,eps_gt_distortion,eps_gt_predicted,"
-               "eps_gt_edges,expected_error_px,expected_mean_px,expected_p90_px,eps_res,world,config,bootstrap_frames\n");
+  std::fprintf(f,
+               "seed,method,converged,keyframes,frames,eps_test,eps_gt,eps_gt_pinhole,eps_gt_"
+               "distortion,eps_gt_predicted,"
+               "eps_gt_edges,expected_error_px,expected_mean_px,expected_p90_px,eps_res,world,"
+               "config,bootstrap_frames,reach_radius,reach_hull\n");
   for (const auto& [world, runs] : worlds) {
     for (const auto& r : runs) {
       std::vector<std::tuple<std::string, std::string, const Run*>> rows;
@@ -1099,11 +1146,14 @@ bool write_csv(const std::string& path, const std::vector<std::pair<World, std::
       rows.emplace_back("random20", "", &r.base20);
       for (size_t c = 1; c < o.configs.size(); ++c) rows.emplace_back("person", o.configs[c], &r.persons[c]);
       for (const auto& [method, config, x] : rows) {
-        std::fprintf(f, "%d,%s,%d,%d,%d,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%s,%s,%d\n", r.seed, method.c_str(),
-                     x->converged, x->keyframes, x->frames, x->eps_test, x->eps_gt, x->eps_gt_pinhole,
-                     x->eps_gt_distortion, x->eps_gt_predicted, x->eps_gt_edges, x->expected_error_px,
-                     x->expected_mean_px, x->expected_p90_px, x->eps_res, world.name().c_str(), config.c_str(),
-                     x->bootstrap_frames);
+        std::fprintf(
+            f,
+            "%d,%s,%d,%d,%d,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%s,%s,%d,%.4f,%.4f\n",
+            r.seed, method.c_str(), x->converged, x->keyframes, x->frames, x->eps_test, x->eps_gt,
+            x->eps_gt_pinhole, x->eps_gt_distortion, x->eps_gt_predicted, x->eps_gt_edges,
+            x->expected_error_px, x->expected_mean_px, x->expected_p90_px, x->eps_res,
+            world.name().c_str(), config.c_str(), x->bootstrap_frames, x->reach_radius,
+            x->reach_hull);
       }
     }
   }

@@ -1,8 +1,11 @@
 // The expected projection error (calib/expected_error.hpp) against the errors calibrations
 // really make, and the accuracy_px stop rule of the engine in closed loop.
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <cmath>
+#include <cstdio>
+#include <optional>
 #include <random>
 
 #include "board/views.hpp"
@@ -11,6 +14,8 @@
 #include "calib/information.hpp"
 #include "calib/metrics.hpp"
 #include "common/error.hpp"
+#include "io/model_file.hpp"
+#include "io/result_file.hpp"
 #include "lens/reference_models.hpp"
 #include "session/session.hpp"
 #include "sim/sim_camera.hpp"
@@ -286,21 +291,45 @@ TEST(ExpectedError, HeldParametersCountAsUnknown) {
     }
     EXPECT_EQ(points, e.points) << seed;
     EXPECT_NEAR(std::sqrt(ms / points), e.rms_px, 1e-4 * e.rms_px) << seed;
+    // Written to posecal's OpenCV file and read back (posecal report --result), the result gives
+    // the same figure: the held coefficients and their covariance travel with it.
+    CalibrationFileExtras extras;
+    put_result_figures(r, &extras);
+    ASSERT_EQ(extras.held, r.held) << seed;
+    EXPECT_DOUBLE_EQ(extras.expected_error_px, e.rms_px) << seed;
+    const std::string path = testing::TempDir() + "/held_" + std::to_string(getpid()) + ".yml";
+    write_camera_model(path, r.model, extras);
+    const ModelFile file = read_model_file(path);
+    std::remove(path.c_str());
+    EXPECT_EQ(file.extras.held, r.held) << seed;
+    const std::optional<CalibrationResult> from_file = result_figures_of(file);
+    ASSERT_TRUE(from_file.has_value()) << seed;
+    const ExpectedError again = expected_error(*from_file);
+    EXPECT_NEAR(again.rms_px, e.rms_px, 1e-6 * e.rms_px) << seed;
+    EXPECT_NEAR(again.p90_px, e.p90_px, 1e-6 * e.p90_px) << seed;
   }
   ASSERT_GE(with_held, 3);
   EXPECT_GT(ratio_sum / with_held, 1.3);
   EXPECT_GE(covered, covered_as_known);
 }
 
+// Six random views of the board through the C525 reference lens, 0.05 px of noise: the input of
+// a well-determined calibration.
+namespace {
+std::vector<Observation> six_c525_views(int views_seed, uint64_t noise_seed) {
+  const CameraModel truth = c525_reference_model();
+  const Board board;
+  std::mt19937_64 rng(noise_seed);
+  return noisy_views(truth, board, random_board_views(views_seed, 6, truth, board), 0.05, &rng);
+}
+}  // namespace
+
 // The information the held covariance is made from is the calibration's own: with nothing held
 // its inverse is the calibration's covariance of the free intrinsics (each frame's Schur
 // complement against the bundle adjustment's pseudo-inverse of J^T J).
 TEST(ExpectedError, InformationWithHeldIsTheCalibrationsOwn) {
   const CameraModel truth = c525_reference_model();
-  const Board board;
-  std::mt19937_64 rng(19);
-  const std::vector<Observation> frames =
-      noisy_views(truth, board, random_board_views(31, 6, truth, board), 0.05, &rng);
+  const std::vector<Observation> frames = six_c525_views(31, 19);
   const CalibrationResult r = calibrate(frames, truth.size());
   ASSERT_TRUE(r.held.empty());
   std::vector<bool> open;
@@ -323,10 +352,7 @@ TEST(ExpectedError, InformationWithHeldIsTheCalibrationsOwn) {
 // onto fx: the inverse is again the calibration's own covariance.
 TEST(ExpectedError, InformationWithHeldFoldsATiedAspectRatio) {
   const CameraModel truth = c525_reference_model();
-  const Board board;
-  std::mt19937_64 rng(23);
-  const std::vector<Observation> frames =
-      noisy_views(truth, board, random_board_views(37, 6, truth, board), 0.05, &rng);
+  const std::vector<Observation> frames = six_c525_views(37, 23);
   CalibrationOptions o;
   o.fix_aspect_ratio = true;
   const CalibrationResult r = calibrate(frames, truth.size(), o);

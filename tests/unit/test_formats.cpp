@@ -267,6 +267,54 @@ TEST(Formats, OpenCVStoresBooleansCovarianceAndExpectedError) {
       {"'intrinsics_covariance'"});
 }
 
+// The coefficients held and their covariance (CalibrationResult::held, held_covariance): written
+// with the result, read back, and refused naming the key when they do not fit the model.
+TEST(Formats, OpenCVStoresHeldCoefficients) {
+  const CameraModel m = model_of(LensModel::kOpenCV8);
+  const int n = m.num_params();
+  CalibrationFileExtras extras;
+  for (int a = 0; a < n; ++a) {
+    for (int b = 0; b < n; ++b) {
+      extras.covariance.push_back(a == b && a < n - 2 ? 0.25 : 0.0);
+      extras.held_covariance.push_back(a == b ? 0.5 : 0.001 * (a + b));
+    }
+  }
+  extras.held = {"k6", "k5"};
+  for (const std::string ext : {".yml", ".json", ".xml"}) {
+    SCOPED_TRACE(ext);
+    const std::string path = temp_path("held" + ext);
+    write_camera_model(path, m, extras);
+    const ModelFile r = read_model_file(path);
+    EXPECT_EQ(r.extras.held, extras.held);
+    EXPECT_EQ(r.extras.held_covariance, extras.held_covariance);
+    EXPECT_EQ(r.extras.covariance, extras.covariance);
+  }
+  const std::string text = read_text(temp_path("held.yml"));
+  ASSERT_NE(text.find("held_intrinsics: k6 k5"), std::string::npos) << text;
+  expect_refused(write_text("held_unknown.yml",
+                            replaced(text, "held_intrinsics: k6 k5", "held_intrinsics: k6 s1")),
+                 {"'held_intrinsics'", "'s1'", "opencv8"});
+  expect_refused(write_text("held_twice.yml",
+                            replaced(text, "held_intrinsics: k6 k5", "held_intrinsics: k6 k6")),
+                 {"'held_intrinsics'", "twice"});
+  expect_refused(write_text("held_empty.yml",
+                            replaced(text, "held_intrinsics: k6 k5", "held_intrinsics: \" \"")),
+                 {"'held_intrinsics' is empty"});
+  const size_t cov_at = text.find("held_intrinsics_covariance:");
+  const size_t cov_end = text.find("posecal_file_end");
+  ASSERT_NE(cov_at, std::string::npos);
+  expect_refused(write_text("held_no_cov.yml", text.substr(0, cov_at) + text.substr(cov_end)),
+                 {"'held_intrinsics' without 'held_intrinsics_covariance'"});
+  const size_t names_at = text.find("held_intrinsics:");
+  expect_refused(write_text("held_no_names.yml", text.substr(0, names_at) + text.substr(cov_at)),
+                 {"'held_intrinsics_covariance' without 'held_intrinsics'"});
+  const std::string rows = "rows: " + std::to_string(n) + "\n   cols: " + std::to_string(n);
+  const std::string wrong = "rows: 2\n   cols: " + std::to_string(n * n / 2);
+  expect_refused(write_text("held_bad_cov.yml",
+                            text.substr(0, cov_at) + replaced(text.substr(cov_at), rows, wrong)),
+                 {"'held_intrinsics_covariance'"});
+}
+
 TEST(Formats, OpenCVXmlIsReadAsStrictlyAsYaml) {
   const std::string path = temp_path("strict.xml");
   write_camera_model(path, model_with_k3());
