@@ -175,6 +175,11 @@ struct Run {
   // principal point over the largest image corner's, and the share of the edge grid's points
   // inside some keyframe's corner hull (the rest is extrapolated).
   double reach_radius = NAN, reach_hull = NAN;
+  // The same keyframes calibrated from the true model (same lens model only): its residual RMS
+  // and eps_gt over the edge grid. Lower than eps_res: the session's solution is a local minimum.
+  double truth_start_rms = NAN, truth_start_eps_gt = NAN;
+  // The same from a cold start (calibrate() without a warm start, as the engine's first solve).
+  double cold_start_rms = NAN, cold_start_eps_gt = NAN;
   std::string lens_model;     // the model calibrated (config "auto": the one chosen)
   int bootstrap_frames = -1;  // frames until the engine had a first target (-1: never)
   // --compactness: keyframes the paper's greedy test keeps for the same eps_test (§5.3).
@@ -432,6 +437,23 @@ Run closed_loop(const World& world, const CameraModel& truth, const BoardSpec& t
     r.expected_p90_px = eng.expected_error()->p90_px;
     r.eps_res = eng.result()->rms_px;
     keyframe_reach(eng.estimate(), eng.keyframe_observations(), &r);
+    if (eng.estimate().lens_model() == truth.lens_model()) {
+      try {
+        const WarmStart from_truth{truth, {}};
+        const CalibrationResult t = calibrate(eng.keyframe_observations(), truth.size(),
+                                              eng.options().calibration, &from_truth);
+        r.truth_start_rms = t.rms_px;
+        r.truth_start_eps_gt = ground_truth_error_edges(truth, t.model);
+      } catch (const std::exception&) {
+      }
+    }
+    try {
+      const CalibrationResult c =
+          calibrate(eng.keyframe_observations(), truth.size(), eng.options().calibration);
+      r.cold_start_rms = c.rms_px;
+      r.cold_start_eps_gt = ground_truth_error_edges(truth, c.model);
+    } catch (const std::exception&) {
+    }
     if (g_compactness && eng.keyframes() >= 2 && !test.empty()) {
       const CompactSubset c = greedy_compact_subset(eng.keyframe_observations(), test, truth.size(), eng.options().calibration);
       r.compact_kept = static_cast<int>(c.keyframes.size());
@@ -1136,7 +1158,8 @@ bool write_csv(const std::string& path, const std::vector<std::pair<World, std::
                "seed,method,converged,keyframes,frames,eps_test,eps_gt,eps_gt_pinhole,eps_gt_"
                "distortion,eps_gt_predicted,"
                "eps_gt_edges,expected_error_px,expected_mean_px,expected_p90_px,eps_res,world,"
-               "config,bootstrap_frames,reach_radius,reach_hull\n");
+               "config,bootstrap_frames,reach_radius,reach_hull,truth_start_rms,truth_start_eps_gt,"
+               "cold_start_rms,cold_start_eps_gt\n");
   for (const auto& [world, runs] : worlds) {
     for (const auto& r : runs) {
       std::vector<std::tuple<std::string, std::string, const Run*>> rows;
@@ -1146,14 +1169,15 @@ bool write_csv(const std::string& path, const std::vector<std::pair<World, std::
       rows.emplace_back("random20", "", &r.base20);
       for (size_t c = 1; c < o.configs.size(); ++c) rows.emplace_back("person", o.configs[c], &r.persons[c]);
       for (const auto& [method, config, x] : rows) {
-        std::fprintf(
-            f,
-            "%d,%s,%d,%d,%d,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%s,%s,%d,%.4f,%.4f\n",
-            r.seed, method.c_str(), x->converged, x->keyframes, x->frames, x->eps_test, x->eps_gt,
-            x->eps_gt_pinhole, x->eps_gt_distortion, x->eps_gt_predicted, x->eps_gt_edges,
-            x->expected_error_px, x->expected_mean_px, x->expected_p90_px, x->eps_res,
-            world.name().c_str(), config.c_str(), x->bootstrap_frames, x->reach_radius,
-            x->reach_hull);
+        std::fprintf(f,
+                     "%d,%s,%d,%d,%d,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%s,%s,%d,%."
+                     "4f,%.4f,%.6f,%.6f,%.6f,%.6f\n",
+                     r.seed, method.c_str(), x->converged, x->keyframes, x->frames, x->eps_test,
+                     x->eps_gt, x->eps_gt_pinhole, x->eps_gt_distortion, x->eps_gt_predicted,
+                     x->eps_gt_edges, x->expected_error_px, x->expected_mean_px, x->expected_p90_px,
+                     x->eps_res, world.name().c_str(), config.c_str(), x->bootstrap_frames,
+                     x->reach_radius, x->reach_hull, x->truth_start_rms, x->truth_start_eps_gt,
+                     x->cold_start_rms, x->cold_start_eps_gt);
       }
     }
   }
