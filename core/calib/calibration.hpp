@@ -114,6 +114,12 @@ struct CalibrationResult {
   double solve_ms = 0;
 
   Eigen::MatrixXd covariance_scaled() const { return covariance * residual_variance; }
+  // Parameters are held and held_covariance is there (num_params() square).
+  bool has_held_covariance() const {
+    const Eigen::Index n = model.num_params();
+    return !held.empty() && held_covariance.rows() == n && held_covariance.cols() == n;
+  }
+  Eigen::MatrixXd held_covariance_scaled() const { return held_covariance * residual_variance; }
 };
 
 // Warm start: a previous solution whose poses cover the first poses.size() frames. Frames beyond

@@ -34,9 +34,7 @@ struct Uncertain {
 };
 
 Uncertain uncertain_intrinsics(const CalibrationResult& r) {
-  const Eigen::Index n = r.model.num_params();
-  const bool with_held =
-      !r.held.empty() && r.held_covariance.rows() == n && r.held_covariance.cols() == n;
+  const bool with_held = r.has_held_covariance();
   Uncertain u{free_intrinsics(with_held ? fixed_with_held_open(r) : r.fixed), {}};
   const Eigen::MatrixXd& cov = with_held ? r.held_covariance : r.covariance;
   const Eigen::Index m = static_cast<Eigen::Index>(u.idx.size());

@@ -296,7 +296,8 @@ Eigen::MatrixXd information_with_held(const CalibrationResult& result,
     throw Error(ErrorCode::kInvalidArgument,
                 "information_with_held: one frame per pose of the result");
   const std::vector<int> held_idx = held_indices(result);
-  *open = fixed_with_held_open(result);
+  *open = result.fixed;
+  for (int h : held_idx) (*open)[static_cast<size_t>(h)] = false;
   // With a tied fy, the information over (fx, fy, ...) first, then x = T x' with fy = aspect fx.
   const bool tied = aspect > 0 && !(*open)[0] && (*open)[1];
   std::vector<bool> with_fy = *open;

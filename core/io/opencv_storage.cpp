@@ -616,6 +616,16 @@ ModelFile parse_opencv(const std::string& path, std::string_view bytes) {
   }
 }
 
+namespace {
+
+std::string space_separated(const std::vector<std::string>& words) {
+  std::string out;
+  for (const std::string& w : words) out += (out.empty() ? "" : " ") + w;
+  return out;
+}
+
+}  // namespace
+
 std::string compose_opencv(const std::string& path, const CameraModel& model,
                            const CalibrationFileExtras& extras) {
   const auto ends_with = [&](std::string_view e) {
@@ -649,18 +659,14 @@ std::string compose_opencv(const std::string& path, const CameraModel& model,
     fs << "avg_reprojection_error" << extras.avg_reprojection_error;
   }
   if (!extras.param_std.empty()) {
-    std::string names;
-    for (const auto& name : model.param_names()) names += (names.empty() ? "" : " ") + name;
-    fs << "intrinsic_names" << names;
+    fs << "intrinsic_names" << space_separated(model.param_names());
     fs << "std_deviations_intrinsics" << row_matrix(extras.param_std, 1);
   }
   if (!extras.covariance.empty()) {
     fs << "intrinsics_covariance" << row_matrix(extras.covariance, n);
   }
   if (!extras.held.empty()) {
-    std::string names;
-    for (const auto& name : extras.held) names += (names.empty() ? "" : " ") + name;
-    fs << "held_intrinsics" << names;
+    fs << "held_intrinsics" << space_separated(extras.held);
     fs << "held_intrinsics_covariance" << row_matrix(extras.held_covariance, n);
   }
   if (extras.expected_error_px >= 0) fs << "expected_error_px" << extras.expected_error_px;

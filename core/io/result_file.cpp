@@ -35,9 +35,9 @@ void put_result_figures(const CalibrationResult& r, CalibrationFileExtras* extra
   extras->covariance = row_major(r.covariance_scaled(), n);
   extras->held.clear();
   extras->held_covariance.clear();
-  if (!r.held.empty() && r.held_covariance.rows() == n && r.held_covariance.cols() == n) {
+  if (r.has_held_covariance()) {
     extras->held = r.held;
-    extras->held_covariance = row_major(r.held_covariance * r.residual_variance, n);
+    extras->held_covariance = row_major(r.held_covariance_scaled(), n);
   }
   const double expected = expected_error(r).rms_px;
   extras->expected_error_px = std::isfinite(expected) ? expected : -1;

@@ -72,8 +72,8 @@ nlohmann::json calibration_json(const CalibrationResult& r) {
   j["covariance_order"] = names;
   // With coefficients held: the covariance with them free under their prior, scaled likewise
   // (CalibrationResult::held_covariance); the expected error is taken over it.
-  if (!r.held.empty() && r.held_covariance.rows() == n && r.held_covariance.cols() == n) {
-    j["held_covariance"] = rows_json(r.held_covariance * r.residual_variance, n);
+  if (r.has_held_covariance()) {
+    j["held_covariance"] = rows_json(r.held_covariance_scaled(), n);
   }
   const ExpectedError e = expected_error(r);
   j["expected_error_px"] = number(e.rms_px);
