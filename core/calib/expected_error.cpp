@@ -97,6 +97,7 @@ ExpectedError expected_error(const CalibrationResult& result, int cols, int rows
   Eigen::Matrix<double, 2, Eigen::Dynamic> J(2, m);
   Eigen::MatrixXd jacobians(2 * cols * rows, m);
   ExpectedError out;
+  out.grid_points = cols * rows;
   for (int j = 0; j < rows; ++j) {
     for (int i = 0; i < cols; ++i) {
       if (!ray_intrinsics_jacobian(model, free_idx, grid_pixel(model, i, j, cols, rows), &J))
@@ -127,6 +128,17 @@ ExpectedError expected_error(const CalibrationResult& result, int cols, int rows
     }
   }
   return out;
+}
+
+int grid_points_with_ray(const CameraModel& model, int cols, int rows) {
+  if (cols < 2 || rows < 2)
+    throw Error(ErrorCode::kInvalidArgument, "grid_points_with_ray: the grid must be at least 2x2");
+  int points = 0;
+  Eigen::Vector3d ray;
+  for (int j = 0; j < rows; ++j)
+    for (int i = 0; i < cols; ++i)
+      points += model.unproject_ray(grid_pixel(model, i, j, cols, rows), &ray);
+  return points;
 }
 
 cv::Mat expected_error_map(const CalibrationResult& result, int cols, int rows) {

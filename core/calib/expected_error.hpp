@@ -22,6 +22,7 @@ struct ExpectedError {
   double rms_px = 0;       // at the measured corner noise (Sigma scaled by the residual variance)
   double rms_unit_px = 0;  // at 1 px corner noise (Sigma_p = I)
   int points = 0;          // grid points whose ray exists under the estimate
+  int grid_points = 0;     // cols x rows
   // The distribution over the noise of the realised eps_gt on this grid (the mean distance
   // between the true and the estimated projection of a ray), first order: its mean and its 90th
   // percentile, from kExpectedErrorDraws draws of the intrinsics' error ~ N(0, Sigma) (fixed
@@ -34,7 +35,17 @@ struct ExpectedError {
   // would remove, in [0, 1].
   int limiting_param = -1;
   double limiting_share = 0;
+
+  // False if the estimate folds inside the image: some grid point has no ray under it, and the
+  // figures leave that part of the image out (a lens projects one-to-one onto its image, so such
+  // an estimate is wrong there by an amount no covariance predicts).
+  bool covers_image() const { return points == grid_points; }
 };
+
+// Of the cols x rows grid (placed as the expected error's), the points whose ray exists under
+// `model`: all of them unless the model folds inside the image.
+int grid_points_with_ray(const CameraModel& model, int cols = kExpectedErrorCols,
+                         int rows = kExpectedErrorRows);
 
 // Throws Error(kInvalidArgument) for a grid smaller than 2x2 or a result without covariance.
 // With no grid point in the image's preimage the figures are NaN and points is 0.

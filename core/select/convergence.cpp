@@ -101,6 +101,14 @@ std::string expected_text(const ExpectedError& e) {
   return px_text(e.p90_px) + " (90th percentile; RMS " + px_text(e.rms_px) + ")";
 }
 
+// Why an estimate that folds inside the image cannot stop, as every message about it says it.
+std::string fold_text(const ExpectedError& e) {
+  return "the estimate folds inside the image (" + std::to_string(e.grid_points - e.points) +
+         " of the " + std::to_string(e.grid_points) +
+         " grid points the expected error is taken over have no ray under it; the keyframes do "
+         "not reach far enough towards the image corners to determine the distortion there)";
+}
+
 }  // namespace
 
 void CalibrationEngine::Impl::continue_towards_accuracy() {
@@ -110,7 +118,9 @@ void CalibrationEngine::Impl::continue_towards_accuracy() {
   // (docs/pose-selection.md, deviation 15).
   const double goal = *opt.accuracy_px;
   // (Not while a parameter is held: the expected error does not see a held guess.)
-  if (expected->p90_px <= goal && held_pending() < 0) {  // false for NaN
+  // (Nor while the estimate folds inside the image: the figure leaves that part out.)
+  if (expected->p90_px <= goal && held_pending() < 0 &&
+      expected->covers_image()) {  // false for NaN
     const std::string why =
         "expected error " + expected_text(*expected) + " <= accuracy_px " + px_text(goal);
     for (int i = 0; i < estimate.num_params(); ++i)
@@ -126,8 +136,12 @@ void CalibrationEngine::Impl::continue_towards_accuracy() {
 }
 
 bool CalibrationEngine::Impl::reopen_above_ceiling() {
+  if (!expected) return false;
   const double ceiling = opt.ratio_stop_max_p90_px;
-  if (!(ceiling > 0) || !expected || expected->p90_px <= ceiling) return false;  // NaN: above
+  const bool above = ceiling > 0 && !(expected->p90_px <= ceiling);  // NaN: above
+  // (An estimate that folds inside the image: not in the paper's presets, which stay the paper's.)
+  const bool folded = opt.method == EngineOptions::Method::kPosecal && !expected->covers_image();
+  if (!above && !folded) return false;
   if (static_cast<int>(keyframes.size()) >= opt.max_keyframes)
     return true;  // the cap's failure says why
   const int param = expected->limiting_param;
@@ -135,8 +149,10 @@ bool CalibrationEngine::Impl::reopen_above_ceiling() {
   param_converged[param] = false;
   EngineEvent e{EngineEvent::Kind::kParameterReopened};
   e.parameter = estimate.param_names()[param];
-  e.message = "every parameter passed the ratio test, but the expected error is " +
-              expected_text(*expected) + ", above ratio_stop_max_p90_px " + px_text(ceiling) +
+  e.message = "every parameter passed the ratio test, but " +
+              (folded ? fold_text(*expected) + "; the expected error is " + expected_text(*expected)
+                      : "the expected error is " + expected_text(*expected) +
+                            ", above ratio_stop_max_p90_px " + px_text(ceiling)) +
               "; " + e.parameter + " holds it back (" + percent_text(expected->limiting_share) +
               " of the squared error)";
   emit(e);
@@ -147,9 +163,11 @@ bool CalibrationEngine::Impl::reopen_above_ceiling() {
 
 std::string CalibrationEngine::Impl::ceiling_shortfall() const {
   return "keyframe cap (" + std::to_string(opt.max_keyframes) +
-         ") reached: every parameter passed the ratio test, but the expected error is " +
-         expected_text(*expected) + ", above ratio_stop_max_p90_px " +
-         px_text(opt.ratio_stop_max_p90_px);
+         ") reached: every parameter passed the ratio test, but " +
+         (expected->covers_image()
+              ? "the expected error is " + expected_text(*expected) +
+                    ", above ratio_stop_max_p90_px " + px_text(opt.ratio_stop_max_p90_px)
+              : fold_text(*expected));
 }
 
 std::string CalibrationEngine::Impl::accuracy_shortfall() const {
@@ -161,6 +179,7 @@ std::string CalibrationEngine::Impl::accuracy_shortfall() const {
            " holds it back (knowing it exactly would remove " + percent_text(expected->limiting_share) +
            " of the squared error)";
   }
+  if (!expected->covers_image()) why += "; " + fold_text(*expected);
   if (!result->solver_converged()) {
     why += "; the last bundle adjustment stopped at its iteration limit (" + result->termination_message + ")";
   }

@@ -474,10 +474,42 @@ bool CalibrationEngine::Impl::recalibrate() {
     emit(re);
     return false;
   };
+  // A solution that folds inside the image is not a lens: part of the image has no ray under it,
+  // and the expected error leaves that part out (docs/pose-selection.md, "Estimates that fold
+  // inside the image"). Seen on a wide rational lens whose keyframes reach 0.7-0.85 of the image
+  // corners' radius: a warm start ending in a local minimum, or a held coefficient keeping an
+  // early guess, and eps_gt 1.7-2.7 px against an expected p90 of 0.13-0.21 px. Then the
+  // keyframes are solved again cold, and from the same solution with the held coefficients at
+  // zero; the best-fitting solution that covers the image is kept (the folded one if none does).
+  // (Not in the paper's presets, which stay the paper's.)
+  const int grid = kExpectedErrorCols * kExpectedErrorRows;
   auto solve = [&] {
-    if (!result) return calibrate(keyframes, size, co);
-    const WarmStart ws{result->model, result->poses};
-    return calibrate(keyframes, size, co, &ws);
+    std::optional<WarmStart> ws;
+    if (result) ws = WarmStart{result->model, result->poses};
+    CalibrationResult first = calibrate(keyframes, size, co, ws ? &*ws : nullptr);
+    if (opt.method != EngineOptions::Method::kPosecal || grid_points_with_ray(first.model) == grid)
+      return first;
+    std::optional<CalibrationResult> best;
+    auto consider = [&](const WarmStart* from) {
+      try {
+        CalibrationResult r = calibrate(keyframes, size, co, from);
+        if (grid_points_with_ray(r.model) == grid && (!best || r.rms_px < best->rms_px))
+          best = std::move(r);
+      } catch (const Error&) {
+      }
+    };
+    if (result) consider(nullptr);
+    if (!first.held.empty()) {
+      std::vector<double> p(first.model.params().begin(), first.model.params().end());
+      const std::vector<std::string>& names = first.model.param_names();
+      for (const std::string& h : first.held)
+        p[std::find(names.begin(), names.end(), h) - names.begin()] = 0.0;
+      const WarmStart zeroed{
+          CameraModel(first.model.width(), first.model.height(), first.model.lens_model(), p),
+          first.poses};
+      consider(&zeroed);
+    }
+    return best ? std::move(*best) : first;
   };
   std::string dropped;
   try {
@@ -545,6 +577,11 @@ bool CalibrationEngine::Impl::recalibrate() {
   EngineEvent ke{EngineEvent::Kind::kCalibrated};
   ke.message = "rms " + std::to_string(now.rms_px) + " px, expected error " +
                std::to_string(expected->rms_px) + " px" + dropped + lens_move;
+  if (!expected->covers_image()) {
+    ke.message += "; the estimate folds inside the image (" +
+                  std::to_string(expected->grid_points - expected->points) + " of " +
+                  std::to_string(expected->grid_points) + " grid points have no ray under it)";
+  }
   if (!now.held.empty()) {
     std::string held;
     for (const std::string& n : now.held) {

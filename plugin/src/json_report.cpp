@@ -82,6 +82,8 @@ nlohmann::json calibration_json(const CalibrationResult& r) {
   j["expected_error_p90_px"] = number(e.p90_px);
   j["expected_error_limited_by"] =
       e.limiting_param >= 0 ? nlohmann::json(names[e.limiting_param]) : nlohmann::json(nullptr);
+  // Not 0: the estimate folds inside the image and the figures leave those points out.
+  j["expected_error_points_without_ray"] = e.grid_points - e.points;
   return j;
 }
 

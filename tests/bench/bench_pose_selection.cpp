@@ -164,6 +164,9 @@ struct Run {
   // eps_gt over the edge-to-edge grid (corners included; mean distance), and the session's own
   // expected_error_px (an RMS over that grid): the stop figure of --accuracy-px.
   double eps_gt_edges = NAN, expected_error_px = NAN, expected_mean_px = NAN, expected_p90_px = NAN;
+  // Of the expected error's 40x23 grid, the points whose ray exists under the estimate (fewer: the
+  // estimated model folds inside the image and the figure leaves those points out).
+  int expected_points = -1;
   // A fisheye world's eps_gt over the edge grid's pixels whose true ray lies within 80 degrees of
   // the axis: where cv::fisheye's baselines have data (random_observations).
   double eps_gt_inner = NAN;
@@ -175,8 +178,9 @@ struct Run {
   // principal point over the largest image corner's, and the share of the edge grid's points
   // inside some keyframe's corner hull (the rest is extrapolated).
   double reach_radius = NAN, reach_hull = NAN;
-  // The same keyframes calibrated from the true model (same lens model only): its residual RMS
-  // and eps_gt over the edge grid. Lower than eps_res: the session's solution is a local minimum.
+  // --restarts: the same keyframes calibrated from the true model (same lens model only): its
+  // residual RMS and eps_gt over the edge grid. Lower than eps_res: the session's solution is a
+  // local minimum.
   double truth_start_rms = NAN, truth_start_eps_gt = NAN;
   // The same from a cold start (calibrate() without a warm start, as the engine's first solve).
   double cold_start_rms = NAN, cold_start_eps_gt = NAN;
@@ -222,6 +226,8 @@ bool g_serve = false;  // --views-serve-target: EngineOptions::view_must_serve_t
 double g_accuracy_px = 0;  // --accuracy-px PX (> 0): EngineOptions::accuracy_px
 int g_max_keyframes = 0;   // --max-keyframes N (> 0): EngineOptions::max_keyframes
 bool g_compactness = false;  // --compactness: run the paper's compactness test on every session
+bool g_restarts =
+    false;  // --restarts: solve the final keyframes again from the truth and cold (--csv)
 // --random-match N: per camera, how many random views (prefixes of one N-view sequence) OpenCV
 // needs to reach the first configuration's realised eps_gt (the "keyframes needed").
 int g_random_match = 0;
@@ -435,9 +441,10 @@ Run closed_loop(const World& world, const CameraModel& truth, const BoardSpec& t
     r.expected_error_px = eng.expected_error()->rms_px;
     r.expected_mean_px = eng.expected_error()->mean_px;
     r.expected_p90_px = eng.expected_error()->p90_px;
+    r.expected_points = eng.expected_error()->points;
     r.eps_res = eng.result()->rms_px;
     keyframe_reach(eng.estimate(), eng.keyframe_observations(), &r);
-    if (eng.estimate().lens_model() == truth.lens_model()) {
+    if (g_restarts && eng.estimate().lens_model() == truth.lens_model()) {
       try {
         const WarmStart from_truth{truth, {}};
         const CalibrationResult t = calibrate(eng.keyframe_observations(), truth.size(),
@@ -447,13 +454,13 @@ Run closed_loop(const World& world, const CameraModel& truth, const BoardSpec& t
       } catch (const std::exception&) {
       }
     }
-    try {
-      const CalibrationResult c =
-          calibrate(eng.keyframe_observations(), truth.size(), eng.options().calibration);
-      r.cold_start_rms = c.rms_px;
-      r.cold_start_eps_gt = ground_truth_error_edges(truth, c.model);
-    } catch (const std::exception&) {
-    }
+    if (g_restarts) try {
+        const CalibrationResult c =
+            calibrate(eng.keyframe_observations(), truth.size(), eng.options().calibration);
+        r.cold_start_rms = c.rms_px;
+        r.cold_start_eps_gt = ground_truth_error_edges(truth, c.model);
+      } catch (const std::exception&) {
+      }
     if (g_compactness && eng.keyframes() >= 2 && !test.empty()) {
       const CompactSubset c = greedy_compact_subset(eng.keyframe_observations(), test, truth.size(), eng.options().calibration);
       r.compact_kept = static_cast<int>(c.keyframes.size());
@@ -1159,7 +1166,7 @@ bool write_csv(const std::string& path, const std::vector<std::pair<World, std::
                "distortion,eps_gt_predicted,"
                "eps_gt_edges,expected_error_px,expected_mean_px,expected_p90_px,eps_res,world,"
                "config,bootstrap_frames,reach_radius,reach_hull,truth_start_rms,truth_start_eps_gt,"
-               "cold_start_rms,cold_start_eps_gt\n");
+               "cold_start_rms,cold_start_eps_gt,expected_points\n");
   for (const auto& [world, runs] : worlds) {
     for (const auto& r : runs) {
       std::vector<std::tuple<std::string, std::string, const Run*>> rows;
@@ -1171,13 +1178,13 @@ bool write_csv(const std::string& path, const std::vector<std::pair<World, std::
       for (const auto& [method, config, x] : rows) {
         std::fprintf(f,
                      "%d,%s,%d,%d,%d,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%.6f,%s,%s,%d,%."
-                     "4f,%.4f,%.6f,%.6f,%.6f,%.6f\n",
+                     "4f,%.4f,%.6f,%.6f,%.6f,%.6f,%d\n",
                      r.seed, method.c_str(), x->converged, x->keyframes, x->frames, x->eps_test,
                      x->eps_gt, x->eps_gt_pinhole, x->eps_gt_distortion, x->eps_gt_predicted,
                      x->eps_gt_edges, x->expected_error_px, x->expected_mean_px, x->expected_p90_px,
                      x->eps_res, world.name().c_str(), config.c_str(), x->bootstrap_frames,
                      x->reach_radius, x->reach_hull, x->truth_start_rms, x->truth_start_eps_gt,
-                     x->cold_start_rms, x->cold_start_eps_gt);
+                     x->cold_start_rms, x->cold_start_eps_gt, x->expected_points);
       }
     }
   }
@@ -1226,6 +1233,8 @@ int main(int argc, char** argv) {
     else if (a == "--seeds") seeds = next();
     else if (a == "--robot") o.robot = true;
     else if (a == "--compactness") g_compactness = true;
+    else if (a == "--restarts")
+      g_restarts = true;
     else if (a == "--random-match") g_random_match = std::stoi(next());
     else {
       std::fprintf(stderr, "unknown option %s\n", a.c_str());
