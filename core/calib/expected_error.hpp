@@ -14,6 +14,7 @@ namespace posecal {
 // included; point (i, j) at pixel (i (W - 1) / (cols - 1), j (H - 1) / (rows - 1)).
 inline constexpr int kExpectedErrorCols = 40;
 inline constexpr int kExpectedErrorRows = 23;
+inline constexpr int kExpectedErrorPoints = kExpectedErrorCols * kExpectedErrorRows;
 inline constexpr int kExpectedErrorDraws = 1000;
 
 struct ExpectedError {

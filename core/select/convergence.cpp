@@ -101,6 +101,8 @@ std::string expected_text(const ExpectedError& e) {
   return px_text(e.p90_px) + " (90th percentile; RMS " + px_text(e.rms_px) + ")";
 }
 
+}  // namespace
+
 // Why an estimate that folds inside the image cannot stop, as every message about it says it.
 std::string fold_text(const ExpectedError& e) {
   return "the estimate folds inside the image (" + std::to_string(e.grid_points - e.points) +
@@ -108,8 +110,6 @@ std::string fold_text(const ExpectedError& e) {
          " grid points the expected error is taken over have no ray under it; the keyframes do "
          "not reach far enough towards the image corners to determine the distortion there)";
 }
-
-}  // namespace
 
 void CalibrationEngine::Impl::continue_towards_accuracy() {
   // The stop figure is the predicted 90th percentile of the realised eps_gt, not the RMS: the

@@ -8,6 +8,7 @@
 #include <opencv2/imgproc.hpp>
 #include <utility>
 
+#include "calib/information.hpp"
 #include "calib/pose_estimation.hpp"
 #include "common/error.hpp"
 #include "common/statistics.hpp"
@@ -482,7 +483,7 @@ bool CalibrationEngine::Impl::recalibrate() {
   // keyframes are solved again cold, and from the same solution with the held coefficients at
   // zero; the best-fitting solution that covers the image is kept (the folded one if none does).
   // (Not in the paper's presets, which stay the paper's.)
-  const int grid = kExpectedErrorCols * kExpectedErrorRows;
+  const int grid = kExpectedErrorPoints;
   auto solve = [&] {
     std::optional<WarmStart> ws;
     if (result) ws = WarmStart{result->model, result->poses};
@@ -501,9 +502,7 @@ bool CalibrationEngine::Impl::recalibrate() {
     if (result) consider(nullptr);
     if (!first.held.empty()) {
       std::vector<double> p(first.model.params().begin(), first.model.params().end());
-      const std::vector<std::string>& names = first.model.param_names();
-      for (const std::string& h : first.held)
-        p[std::find(names.begin(), names.end(), h) - names.begin()] = 0.0;
+      for (const int h : held_indices(first)) p[h] = 0.0;
       const WarmStart zeroed{
           CameraModel(first.model.width(), first.model.height(), first.model.lens_model(), p),
           first.poses};
@@ -577,11 +576,7 @@ bool CalibrationEngine::Impl::recalibrate() {
   EngineEvent ke{EngineEvent::Kind::kCalibrated};
   ke.message = "rms " + std::to_string(now.rms_px) + " px, expected error " +
                std::to_string(expected->rms_px) + " px" + dropped + lens_move;
-  if (!expected->covers_image()) {
-    ke.message += "; the estimate folds inside the image (" +
-                  std::to_string(expected->grid_points - expected->points) + " of " +
-                  std::to_string(expected->grid_points) + " grid points have no ray under it)";
-  }
+  if (!expected->covers_image()) ke.message += "; " + fold_text(*expected);
   if (!now.held.empty()) {
     std::string held;
     for (const std::string& n : now.held) {

@@ -200,6 +200,9 @@ struct CalibrationEngine::Impl {
 // "12.3%".
 std::string percent_text(double fraction);
 
+// Why an estimate that folds inside the image cannot stop, as every message about it says it.
+std::string fold_text(const ExpectedError& e);
+
 // The relative variance reduction the ratio test measures (var_before > 0): 1 - var'/var, or
 // 1 - sigma'/sigma for kStd.
 double variance_reduction(double var_before, double var_after, EngineOptions::ConvergenceMeasure measure);

@@ -227,7 +227,11 @@ void CalibrationEngine::Impl::prepare_scoring() {
   if (held_pending() >= 0 && result && !prior && result->poses.size() == keyframes.size()) {
     // The held parameters freed: the keyframes' information (each frame's Schur complement onto
     // the intrinsics, as the calibration's own covariance is made) plus a weak prior on the held
-    // ones, whose direction the keyframes leave (nearly) undetermined.
+    // ones, whose direction the keyframes leave (nearly) undetermined. Here the prior is relative
+    // (1 / kHeldPriorStd^2 at unit noise: a standard deviation of kHeldPriorStd times the noise
+    // in px), where held_covariance() and the expected error take it absolute; the scores only
+    // rank candidates against each other. The absolute scale chose worse on the wide camera's
+    // tuning seeds (changed 10 and 8 of 20 sessions, 7 and 6 of them worse: docs/math.md).
     information = information_with_held(*result, keyframes, 1.0 / (kHeldPriorStd * kHeldPriorStd),
                                         &scoring_fixed);
   } else {

@@ -95,8 +95,7 @@ Run run_one(const Case& c, int seed, OperatorKind op) {
   r.eps_gt = ground_truth_error(so.truth, e.result()->model);
   r.held = e.result()->held;
   r.lens = e.result()->model.lens_model();
-  r.points_without_ray =
-      kExpectedErrorCols * kExpectedErrorRows - grid_points_with_ray(e.result()->model);
+  r.points_without_ray = kExpectedErrorPoints - grid_points_with_ray(e.result()->model);
   return r;
 }
 

@@ -77,7 +77,7 @@ TEST(ExpectedError, PredictsTheRealisedErrorOverNoiseDraws) {
     const CalibrationResult r =
         calibrate(noisy_views(truth, board, views, 0.05, &rng), truth.size());
     const ExpectedError e = expected_error(r);
-    ASSERT_EQ(e.points, kExpectedErrorCols * kExpectedErrorRows);
+    ASSERT_EQ(e.points, kExpectedErrorPoints);
     const double realised = realised_rms(truth, r.model, kExpectedErrorCols, kExpectedErrorRows);
     realised_ms += realised * realised / kDraws;
     // The mean distance (what eps_gt measures) against its predicted distribution.
@@ -379,7 +379,7 @@ TEST(ExpectedError, InformationWithHeldFoldsATiedAspectRatio) {
 // the image, and the expected error says so instead of quietly leaving those points out; every
 // benchmark camera, and cameras sampled around each, covers its image.
 TEST(ExpectedError, AnEstimateThatFoldsInsideTheImageDoesNotCoverIt) {
-  const int grid = kExpectedErrorCols * kExpectedErrorRows;
+  const int grid = kExpectedErrorPoints;
   for (const char* family : {"c525", "industrial", "tele", "longfocal", "vga", "fisheye185",
                              "fisheye150", "wide", "tilted"}) {
     const CameraModel ref = reference_camera(family);
