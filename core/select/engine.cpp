@@ -483,18 +483,19 @@ bool CalibrationEngine::Impl::recalibrate() {
   // keyframes are solved again cold, and from the same solution with the held coefficients at
   // zero; the best-fitting solution that covers the image is kept (the folded one if none does).
   // (Not in the paper's presets, which stay the paper's.)
-  const int grid = kExpectedErrorPoints;
   auto solve = [&] {
     std::optional<WarmStart> ws;
     if (result) ws = WarmStart{result->model, result->poses};
     CalibrationResult first = calibrate(keyframes, size, co, ws ? &*ws : nullptr);
-    if (opt.method != EngineOptions::Method::kPosecal || grid_points_with_ray(first.model) == grid)
+    if (opt.method != EngineOptions::Method::kPosecal ||
+        grid_points_with_ray(first.model) == kExpectedErrorPoints)
       return first;
     std::optional<CalibrationResult> best;
     auto consider = [&](const WarmStart* from) {
       try {
         CalibrationResult r = calibrate(keyframes, size, co, from);
-        if (grid_points_with_ray(r.model) == grid && (!best || r.rms_px < best->rms_px))
+        if (grid_points_with_ray(r.model) == kExpectedErrorPoints &&
+            (!best || r.rms_px < best->rms_px))
           best = std::move(r);
       } catch (const Error&) {
       }
