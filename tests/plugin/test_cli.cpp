@@ -21,6 +21,7 @@
 #include <sstream>
 
 #include "board/board.hpp"
+#include "cli_child.hpp"
 #include "common/run_id.hpp"
 #include "io/model_file.hpp"
 #include "lens/reference_models.hpp"
@@ -32,27 +33,8 @@ namespace fs = std::filesystem;
 
 namespace {
 
-struct CliRun {
-  int status = -1;
-  std::string out;
-};
-
-// Runs the CLI through the shell; stderr is merged into `out` unless `stdout_only`.
-// `env` replaces the default environment change (no display).
-CliRun run(const std::string& args, bool stdout_only = false,
-           const std::string& env = "-u DISPLAY") {
-  CliRun r;
-  const std::string cmd = "env " + env + " " + std::string(POSECAL_CLI) + " " + args +
-                          (stdout_only ? " 2>/dev/null" : " 2>&1");
-  FILE* p = popen(cmd.c_str(), "r");
-  if (!p) return r;
-  std::array<char, 4096> buf;
-  size_t n;
-  while ((n = fread(buf.data(), 1, buf.size(), p)) > 0) r.out.append(buf.data(), n);
-  const int rc = pclose(p);
-  r.status = WIFEXITED(rc) ? WEXITSTATUS(rc) : -1;
-  return r;
-}
+using posecal_test::CliRun;
+using posecal_test::run_cli;
 
 const char* kOpenCVData = "/usr/share/doc/opencv-doc/examples/data";
 
@@ -79,8 +61,8 @@ TEST(Cli, CalibratesOpenCVSampleImagesLikeOpenCV) {
     std::fclose(f);
   }
   const std::string out = (dir / "calib.yml").string();
-  const CliRun r = run("calibrate --images " + dir.string() +
-                       " --target chessboard:9x6:0.025 --out " + out + " --json");
+  const CliRun r = run_cli("calibrate --images " + dir.string() +
+                           " --target chessboard:9x6:0.025 --out " + out + " --json");
   ASSERT_EQ(r.status, 0) << r.out;
   const auto j = nlohmann::json::parse(r.out);
   EXPECT_GE(j["frames_used"].get<int>(), 10);
@@ -145,24 +127,24 @@ TEST(Cli, FolderOfTwoCamerasIsRefusedAndOneIsChosen) {
   }
   ASSERT_GE(copied, 20);
   const std::string base = "calibrate --images " + dir.string() + " --target chessboard:9x6:0.025";
-  CliRun r = run(base);
+  CliRun r = run_cli(base);
   EXPECT_EQ(r.status, 2) << r.out;
   EXPECT_NE(r.out.find("'left@640x480' ("), std::string::npos) << r.out;
   EXPECT_NE(r.out.find("'right@640x480' ("), std::string::npos) << r.out;
   EXPECT_NE(r.out.find("'left@612x459' (1 image)"), std::string::npos) << r.out;
   EXPECT_NE(r.out.find("--camera-group"), std::string::npos) << r.out;
-  r = run(base + " --camera-group left");  // two sizes of "left": ambiguous, said so
+  r = run_cli(base + " --camera-group left");  // two sizes of "left": ambiguous, said so
   EXPECT_EQ(r.status, 2) << r.out;
   EXPECT_NE(r.out.find("names more than one"), std::string::npos) << r.out;
 
-  r = run(base + " --camera-group left@640x480", true);
+  r = run_cli(base + " --camera-group left@640x480", true);
   ASSERT_EQ(r.status, 0) << r.out;
   EXPECT_NE(r.out.find("[1/"), std::string::npos) << r.out;  // progress, one line per image
   EXPECT_NE(r.out.find("calibrated group 'left@640x480'"), std::string::npos) << r.out;
   EXPECT_NE(r.out.find("not used right01.jpg: in group 'right@640x480'"), std::string::npos)
       << r.out;
 
-  r = run(base + " --camera-group right@640x480 --json", true);
+  r = run_cli(base + " --camera-group right@640x480 --json", true);
   ASSERT_EQ(r.status, 0) << r.out;
   const auto j = nlohmann::json::parse(r.out);  // --json: the result document only
   EXPECT_EQ(j["camera_group"], "right@640x480");
@@ -176,7 +158,7 @@ TEST(Cli, FolderOfTwoCamerasIsRefusedAndOneIsChosen) {
   // The quality gate offline: a residual limit these photos cannot meet, exit 4.
   const fs::path spec = dir / "spec.json";
   std::ofstream(spec) << R"({"max_eps_res_px": 0.01, "max_keyframes": 100})";
-  r = run(base + " --camera-group right@640x480 --json --spec " + spec.string(), true);
+  r = run_cli(base + " --camera-group right@640x480 --json --spec " + spec.string(), true);
   EXPECT_EQ(r.status, 4) << r.out;
   const auto v = nlohmann::json::parse(r.out);
   EXPECT_EQ(v["verdict"], "fail");
@@ -185,17 +167,17 @@ TEST(Cli, FolderOfTwoCamerasIsRefusedAndOneIsChosen) {
 }
 
 TEST(Cli, BadInputGivesMessageAndNonZeroExit) {
-  CliRun r = run("calibrate --images /nonexistent/dir");
+  CliRun r = run_cli("calibrate --images /nonexistent/dir");
   EXPECT_EQ(r.status, 2);
   EXPECT_NE(r.out.find("does not exist"), std::string::npos) << r.out;
-  r = run("calibrate --images /tmp --target charuco:9x6");
+  r = run_cli("calibrate --images /tmp --target charuco:9x6");
   EXPECT_EQ(r.status, 2);
   EXPECT_NE(r.out.find("target spec"), std::string::npos) << r.out;
-  r = run("calibrate");
+  r = run_cli("calibrate");
   EXPECT_EQ(r.status, 1);
-  r = run("calibrate --images");
+  r = run_cli("calibrate --images");
   EXPECT_EQ(r.status, 1);
-  r = run("frobnicate");
+  r = run_cli("frobnicate");
   EXPECT_EQ(r.status, 1);
   EXPECT_NE(r.out.find("unknown command"), std::string::npos);
   // A folder of non-images: every file listed, a clear error, no crash.
@@ -207,39 +189,39 @@ TEST(Cli, BadInputGivesMessageAndNonZeroExit) {
     std::fputs("garbage", f);
     std::fclose(f);
   }
-  r = run("calibrate --images " + dir.string());
+  r = run_cli("calibrate --images " + dir.string());
   EXPECT_EQ(r.status, 2);
   EXPECT_NE(r.out.find("no image"), std::string::npos) << r.out;
   // Images without enough views: a blank image set.
   for (int i = 0; i < 3; ++i)
     cv::imwrite((dir / ("blank" + std::to_string(i) + ".png")).string(),
                 cv::Mat(480, 640, CV_8U, cv::Scalar(128)));
-  r = run("calibrate --images " + dir.string() + " --json");
+  r = run_cli("calibrate --images " + dir.string() + " --json");
   EXPECT_EQ(r.status, 2) << r.out;
 }
 
 TEST(Cli, WritesPrintableBoard) {
   const std::string png = testing::TempDir() + "/cli_board.png";
-  CliRun r = run("board --out " + png + " --dpi 200");
+  CliRun r = run_cli("board --out " + png + " --dpi 200");
   ASSERT_EQ(r.status, 0) << r.out;
   const cv::Mat img = cv::imread(png, cv::IMREAD_GRAYSCALE);
   ASSERT_FALSE(img.empty());
   EXPECT_EQ(posecal::Board().detect(img).size(), 40u);
-  r = run("board --out " + testing::TempDir() + "/cli_board.pdf --target chessboard:9x6:0.025");
+  r = run_cli("board --out " + testing::TempDir() + "/cli_board.pdf --target chessboard:9x6:0.025");
   EXPECT_EQ(r.status, 0) << r.out;
-  r = run("board --out /nonexistent/dir/board.pdf");
+  r = run_cli("board --out /nonexistent/dir/board.pdf");
   EXPECT_EQ(r.status, 2) << r.out;
   // Paper sizes (tests/unit/test_printable.cpp measures the pages).
   const std::string a3 = testing::TempDir() + "/cli_board_a3.pdf";
-  r = run("board --out " + a3 + " --paper A3 --target charuco:14x10:0.04:0.03:DICT_5X5_100");
+  r = run_cli("board --out " + a3 + " --paper A3 --target charuco:14x10:0.04:0.03:DICT_5X5_100");
   EXPECT_EQ(r.status, 0) << r.out;
   std::ifstream f(a3, std::ios::binary);
   const std::string pdf((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>());
   EXPECT_NE(pdf.find("/Count 4"), std::string::npos) << "four A3 sheets";
-  r = run("board --out " + testing::TempDir() + "/cli_board_a5.pdf --paper a5");
+  r = run_cli("board --out " + testing::TempDir() + "/cli_board_a5.pdf --paper a5");
   EXPECT_EQ(r.status, 1) << r.out;
   EXPECT_NE(r.out.find("a5"), std::string::npos) << r.out;
-  r = run("board --out " + png + " --paper a4");
+  r = run_cli("board --out " + png + " --paper a4");
   EXPECT_EQ(r.status, 2) << r.out;
   EXPECT_NE(r.out.find("paper size applies to a PDF"), std::string::npos) << r.out;
 }
@@ -268,7 +250,7 @@ std::string temp_dir(const std::string& name) {
 TEST(Cli, SimulateExitCodes) {
   // (exit code 0 for a converged run: LiveCalibrationPrintsJsonEvents, EvaluateGrabFeatures)
   // Three keyframes cannot converge: the run ends as "failed", with a result, exit code 3.
-  CliRun r = run("simulate --seed 2 --max-keyframes 3 --json", true);
+  CliRun r = run_cli("simulate --seed 2 --max-keyframes 3 --json", true);
   ASSERT_EQ(r.status, 3) << r.out;
   const auto j = nlohmann::json::parse(r.out);
   EXPECT_FALSE(j["converged"].get<bool>());
@@ -285,24 +267,24 @@ TEST(Cli, SimulateExitCodes) {
   ASSERT_EQ(j["expected_error_map"]["px"].size(), 9u) << r.out;
   ASSERT_EQ(j["expected_error_map"]["px"][0].size(), 16u) << r.out;
   EXPECT_GT(j["expected_error_map"]["px"][0][0].get<double>(), 0.0);
-  EXPECT_EQ(run("simulate --operator cat").status, 1);
-  EXPECT_EQ(run("simulate --seed x").status, 1);
-  EXPECT_EQ(run("simulate --accuracy-px 0").status, 1);
-  EXPECT_EQ(run("simulate --accuracy-px -1").status, 1);
-  EXPECT_EQ(run("simulate --camera-model /nonexistent.yml").status, 2);
+  EXPECT_EQ(run_cli("simulate --operator cat").status, 1);
+  EXPECT_EQ(run_cli("simulate --seed x").status, 1);
+  EXPECT_EQ(run_cli("simulate --accuracy-px 0").status, 1);
+  EXPECT_EQ(run_cli("simulate --accuracy-px -1").status, 1);
+  EXPECT_EQ(run_cli("simulate --camera-model /nonexistent.yml").status, 2);
 }
 
 // --accuracy-px is the stop rule: converged means the predicted 90th percentile of the error is at
 // most that (the RMS below it); one that
 // cannot be reached within --max-keyframes ends the run as not converged, saying why.
 TEST(Cli, SimulateToAnAccuracy) {
-  CliRun r = run("simulate --seed 4 --accuracy-px 0.4 --json", true);
+  CliRun r = run_cli("simulate --seed 4 --accuracy-px 0.4 --json", true);
   ASSERT_EQ(r.status, 0) << r.out;
   auto j = nlohmann::json::parse(r.out);
   EXPECT_TRUE(j["converged"].get<bool>());
   EXPECT_LE(j["expected_error_p90_px"].get<double>(), 0.4);
   EXPECT_LT(j["expected_error_px"].get<double>(), j["expected_error_p90_px"].get<double>());
-  r = run("simulate --seed 4 --accuracy-px 0.001 --max-keyframes 4 --json", true);
+  r = run_cli("simulate --seed 4 --accuracy-px 0.001 --max-keyframes 4 --json", true);
   ASSERT_EQ(r.status, 3) << r.out;
   j = nlohmann::json::parse(r.out);
   EXPECT_NE(j["failure"].get<std::string>().find("accuracy_px 0.001 px"), std::string::npos) << r.out;
@@ -311,7 +293,7 @@ TEST(Cli, SimulateToAnAccuracy) {
 // --fix holds parameters at their initial value (distortion: 0) through the whole session: they
 // report std 0 and count as converged; a wrong name is refused before anything runs.
 TEST(Cli, SimulateWithFixedParameters) {
-  CliRun r = run("simulate --seed 3 --fix k2,k3 --json", true);
+  CliRun r = run_cli("simulate --seed 3 --fix k2,k3 --json", true);
   ASSERT_EQ(r.status, 0) << r.out;
   const auto j = nlohmann::json::parse(r.out);
   EXPECT_TRUE(j["converged"].get<bool>());
@@ -320,29 +302,29 @@ TEST(Cli, SimulateWithFixedParameters) {
   EXPECT_EQ(j["std"]["k3"].get<double>(), 0.0);
   EXPECT_GT(j["std"]["k1"].get<double>(), 0.0);
   EXPECT_NE(j["k1"].get<double>(), 0.0);
-  r = run("simulate --fix k9");
+  r = run_cli("simulate --fix k9");
   EXPECT_EQ(r.status, 2);
   EXPECT_NE(r.out.find("'k9'"), std::string::npos) << r.out;
-  r = run("simulate --fix k2,,k3");
+  r = run_cli("simulate --fix k2,,k3");
   EXPECT_EQ(r.status, 1);
   EXPECT_NE(r.out.find("empty parameter name"), std::string::npos) << r.out;
   // A choice outside the table's list is a usage error, named by the canonical flag.
-  r = run("simulate --measure cat");
+  r = run_cli("simulate --measure cat");
   EXPECT_EQ(r.status, 1);
   EXPECT_NE(r.out.find("--convergence-measure"), std::string::npos) << r.out;
-  r = run("simulate --score cat");
+  r = run_cli("simulate --score cat");
   EXPECT_EQ(r.status, 1);
   EXPECT_NE(r.out.find("--candidate-score"), std::string::npos) << r.out;
 }
 
 // --views: generic view candidates through the CLI and the session config.
 TEST(Cli, SimulateWithViewCandidates) {
-  CliRun r = run("simulate --seed 5 --views 100 --measure std --json", true);
+  CliRun r = run_cli("simulate --seed 5 --views 100 --measure std --json", true);
   ASSERT_EQ(r.status, 0) << r.out;
   const auto j = nlohmann::json::parse(r.out);
   EXPECT_TRUE(j["converged"].get<bool>());
   EXPECT_LE(j["keyframes"].get<int>(), 20);
-  r = run("simulate --views -1");
+  r = run_cli("simulate --views -1");
   EXPECT_EQ(r.status, 1);
   EXPECT_NE(r.out.find("--view-candidates"), std::string::npos) << r.out;
 }
@@ -406,27 +388,27 @@ TEST(Cli, EveryCommandHasItsOwnHelp) {
   const std::vector<std::string> commands = {"calibrate", "station",  "evaluate",
                                              "grab",      "features", "simulate",
                                              "board",     "list",     "version"};
-  const CliRun top = run("--help", true);
+  const CliRun top = run_cli("--help", true);
   ASSERT_EQ(top.status, 0) << top.out;
   for (const std::string& c : commands) {
     EXPECT_NE(top.out.find("\n  " + c + " "), std::string::npos) << c << " in\n" << top.out;
     for (const char* help : {" --help", " -h"}) {
-      const CliRun r = run(c + help, true);
+      const CliRun r = run_cli(c + help, true);
       EXPECT_EQ(r.status, 0) << c << help << ": " << r.out;
       EXPECT_NE(r.out.find("Usage: posecal " + c + " [OPTIONS]"), std::string::npos)
           << c << help << ": " << r.out;
     }
   }
-  EXPECT_NE(run("grab --help", true).out.find("--count"), std::string::npos);
-  EXPECT_EQ(run("help", true).status, 0);
-  CliRun r = run("", true);
+  EXPECT_NE(run_cli("grab --help", true).out.find("--count"), std::string::npos);
+  EXPECT_EQ(run_cli("help", true).status, 0);
+  CliRun r = run_cli("", true);
   EXPECT_EQ(r.status, 1);
   EXPECT_EQ(r.out, "");  // the usage goes to stderr
-  EXPECT_NE(run("").out.find("Usage: posecal"), std::string::npos);
+  EXPECT_NE(run_cli("").out.find("Usage: posecal"), std::string::npos);
 }
 
 TEST(Cli, VersionFlagIsTheVersionCommand) {
-  const CliRun flag = run("--version", true), command = run("version", true);
+  const CliRun flag = run_cli("--version", true), command = run_cli("version", true);
   EXPECT_EQ(flag.status, 0);
   EXPECT_EQ(command.status, 0);
   EXPECT_EQ(flag.out, command.out);
@@ -440,7 +422,7 @@ TEST(Cli, EverySessionKeyIsAFlag) {
   const std::vector<TableKey> keys = session_table_keys();
   ASSERT_GE(keys.size(), 17u);
   for (const char* command : {"simulate", "station", "calibrate"}) {
-    const CliRun help = run(std::string(command) + " --help", true);
+    const CliRun help = run_cli(std::string(command) + " --help", true);
     ASSERT_EQ(help.status, 0) << help.out;
     for (const TableKey& k : keys) {
       EXPECT_TRUE(names_flag(help.out, flag_of(k.key))) << command << ": " << flag_of(k.key);
@@ -454,7 +436,7 @@ TEST(Cli, EverySessionKeyIsAFlag) {
 // The flags check the table's ranges before anything runs (max_tilt_deg is [1, 88]); a value
 // inside them reaches the library, which opens the session with it.
 TEST(Cli, SessionFlagsCheckTheTablesRanges) {
-  CliRun r = run("simulate --max-tilt-deg 89");
+  CliRun r = run_cli("simulate --max-tilt-deg 89");
   EXPECT_EQ(r.status, 1) << r.out;
   EXPECT_NE(r.out.find("max-tilt-deg"), std::string::npos) << r.out;
   EXPECT_NE(r.out.find("posecal simulate: "), std::string::npos) << r.out;
@@ -462,7 +444,7 @@ TEST(Cli, SessionFlagsCheckTheTablesRanges) {
   // One frame: the session opened (the library accepted the config) but cannot calibrate.
   for (const char* ok : {"--max-tilt-deg 88", "--max-tilt-deg=88", "--lock-settings=false",
                          "--fixed k3", "--operator=robot", "--target chessboard:9x6:0.025"}) {
-    r = run(std::string("simulate --max-frames 1 ") + ok);
+    r = run_cli(std::string("simulate --max-frames 1 ") + ok);
     EXPECT_EQ(r.status, 2) << ok << ": " << r.out;
     EXPECT_NE(r.out.find("fewer than two keyframes [POSECAL_E_STATE]"), std::string::npos)
         << ok << ": " << r.out;
@@ -470,11 +452,12 @@ TEST(Cli, SessionFlagsCheckTheTablesRanges) {
   for (const char* bad : {"--max-keyframes 2", "--max-keyframes 5.5", "--threshold 1.5",
                           "--convergence-threshold 1.5", "--lock-settings=maybe",
                           "--prospective-only --measured-convergence"}) {
-    r = run(std::string("simulate ") + bad);
+    r = run_cli(std::string("simulate ") + bad);
     EXPECT_EQ(r.status, 1) << bad << ": " << r.out;
   }
   // The alias is the canonical flag: its message names the canonical flag.
-  EXPECT_NE(run("simulate --threshold 1.5").out.find("--convergence-threshold"), std::string::npos);
+  EXPECT_NE(run_cli("simulate --threshold 1.5").out.find("--convergence-threshold"),
+            std::string::npos);
 }
 
 // An alias and the canonical flag make the same session config: the same run, which the value
@@ -482,11 +465,11 @@ TEST(Cli, SessionFlagsCheckTheTablesRanges) {
 // than five). The text listing shows the result's covariance_order.
 TEST(Cli, AliasAndCanonicalFlagAreOneSessionKey) {
   const std::string base = "simulate --seed 3 --max-keyframes 5 ";
-  const CliRun a = run(base + "--threshold 0.99 --json", true);
+  const CliRun a = run_cli(base + "--threshold 0.99 --json", true);
   ASSERT_EQ(a.status, 0) << a.out;
   const auto j = nlohmann::json::parse(a.out);
   EXPECT_EQ(j["keyframes"], 2);
-  const CliRun b = run(base + "--convergence-threshold=0.99", true);
+  const CliRun b = run_cli(base + "--convergence-threshold=0.99", true);
   ASSERT_EQ(b.status, 0) << b.out;
   EXPECT_EQ(b.out.rfind("converged after 2 keyframes (" +
                             std::to_string(j["frames_processed"].get<int>()) + " frames",
@@ -508,11 +491,11 @@ TEST(Cli, AliasAndCanonicalFlagAreOneSessionKey) {
 TEST(Cli, ProspectiveOnlyTurnsMeasuredConvergenceOff) {
   const std::string base = "simulate --seed 3 --max-keyframes 5 --events --json";
   const std::string measured = "by the last keyframe";  // the measured test's event message
-  CliRun r = run(base);
+  CliRun r = run_cli(base);
   ASSERT_EQ(r.status, 3) << r.out;
   EXPECT_NE(r.out.find(measured), std::string::npos) << r.out;
   EXPECT_EQ(nlohmann::json::parse(lines_of(r.out).back())["keyframes"], 5);
-  r = run(base + " --prospective-only");
+  r = run_cli(base + " --prospective-only");
   ASSERT_EQ(r.status, 3) << r.out;
   EXPECT_EQ(r.out.find(measured), std::string::npos) << r.out;
   EXPECT_EQ(nlohmann::json::parse(lines_of(r.out).back())["keyframes"], 5);
@@ -521,15 +504,15 @@ TEST(Cli, ProspectiveOnlyTurnsMeasuredConvergenceOff) {
 // operator is a session key now (not simulate's URI option): the simulated operator follows it,
 // and calibrate --camera puts it into the session config too.
 TEST(Cli, OperatorIsASessionKey) {
-  const CliRun r = run("simulate --seed 2 --max-keyframes 3 --operator robot --json", true);
+  const CliRun r = run_cli("simulate --seed 2 --max-keyframes 3 --operator robot --json", true);
   ASSERT_EQ(r.status, 3) << r.out;
   const auto j = nlohmann::json::parse(r.out);
   EXPECT_NE(j["camera"]["uri"].get<std::string>().find("operator=robot"), std::string::npos)
       << r.out;
-  CliRun c = run("calibrate --camera 'sim://?seed=2&operator=person' --operator robot");
+  CliRun c = run_cli("calibrate --camera 'sim://?seed=2&operator=person' --operator robot");
   EXPECT_EQ(c.status, 2) << c.out;
   EXPECT_NE(c.out.find("contradicts"), std::string::npos) << c.out;
-  c = run("calibrate --camera sim:// --guide stdio --operator person");
+  c = run_cli("calibrate --camera sim:// --guide stdio --operator person");
   EXPECT_EQ(c.status, 1) << c.out;
 }
 
@@ -543,11 +526,11 @@ namespace {
 void check_station_of_four(const std::string& dir, const std::string& records) {
   const std::string db = records.empty() ? dir + "/records.sqlite" : records;
   const auto t0 = std::chrono::steady_clock::now();
-  const CliRun r =
-      run("station --cameras 'sim://?seed=51,sim://?seed=52,sim://?seed=53,"
-          "sim://?seed=54&operator=robot' --out-dir " +
-              dir + (records.empty() ? "" : " --records '" + records + "'") + " --json",
-          true);
+  const CliRun r = run_cli(
+      "station --cameras 'sim://?seed=51,sim://?seed=52,sim://?seed=53,"
+      "sim://?seed=54&operator=robot' --out-dir " +
+          dir + (records.empty() ? "" : " --records '" + records + "'") + " --json",
+      true);
   const double wall_s =
       std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   ASSERT_EQ(r.status, 0) << r.out;
@@ -604,14 +587,15 @@ void check_station_of_four(const std::string& dir, const std::string& records) {
         << result["fleet"].dump();
     // records resolve: the calibration again from the stored detections, bit for bit.
     const std::string run_id = c["run_id"].get<std::string>();
-    const CliRun rr = run("records resolve " + run_id + " --db '" + db + "' --json", true);
+    const CliRun rr = run_cli("records resolve " + run_id + " --db '" + db + "' --json", true);
     ASSERT_EQ(rr.status, 0) << rr.out;
     const auto rj = nlohmann::json::parse(rr.out);
     EXPECT_TRUE(rj["identical"].get<bool>()) << rr.out;
     EXPECT_EQ(rj["recomputed"], rj["stored"]);
     // records export: the re-solved model file equals the one the station wrote.
     const std::string exp_dir = dir + "/export-" + run_id;
-    const CliRun re = run("records export " + run_id + " --db '" + db + "' --out-dir " + exp_dir);
+    const CliRun re =
+        run_cli("records export " + run_id + " --db '" + db + "' --out-dir " + exp_dir);
     ASSERT_EQ(re.status, 0) << re.out;
     const std::string id = c["camera"]["id"].get<std::string>();
     EXPECT_EQ(posecal::read_camera_model(exp_dir + "/" + id + ".yml").params(),
@@ -620,7 +604,7 @@ void check_station_of_four(const std::string& dir, const std::string& records) {
     ASSERT_TRUE(exported_record.good());
     EXPECT_EQ(nlohmann::json::parse(exported_record)["keyframes"].size(), rec.keyframes.size());
   }
-  const CliRun rl = run("records list --db '" + db + "' --json", true);
+  const CliRun rl = run_cli("records list --db '" + db + "' --json", true);
   ASSERT_EQ(rl.status, 0) << rl.out;
   EXPECT_EQ(nlohmann::json::parse(rl.out).size(), 4u);
   // The cameras ran concurrently: the whole station took less than their sum.
@@ -645,11 +629,11 @@ TEST(Cli, StationReportsFailedCamerasAndIdentityClashes) {
   const std::string dir = temp_dir("posecal_station_bad");
   // Two sessions of one simulated camera (same id) and a camera that does not exist; three
   // keyframes at most, so the two simulated runs finish early without converging.
-  const CliRun r =
-      run("station --cameras 'sim://?seed=61,sim://?seed=61,images:///nonexistent/x'"
-          " --max-keyframes 3 --out-dir " +
-              dir + " --json",
-          true);
+  const CliRun r = run_cli(
+      "station --cameras 'sim://?seed=61,sim://?seed=61,images:///nonexistent/x'"
+      " --max-keyframes 3 --out-dir " +
+          dir + " --json",
+      true);
   ASSERT_EQ(r.status, 2) << r.out;  // a failed camera outweighs unconverged ones
   const auto j = nlohmann::json::parse(r.out);
   EXPECT_EQ(j["converged"], 0);
@@ -664,33 +648,33 @@ TEST(Cli, StationReportsFailedCamerasAndIdentityClashes) {
   std::set<std::string> files = {fs::path(j["cameras"][0]["file"].get<std::string>()).filename(),
                                  fs::path(j["cameras"][1]["file"].get<std::string>()).filename()};
   EXPECT_EQ(files, (std::set<std::string>{"sim-61.yml", "sim-61-2.yml"}));
-  EXPECT_EQ(run("station --out-dir " + dir).status, 1);
-  EXPECT_EQ(run("station --cameras sim:// --out-dir " + dir + " --format txt").status, 1);
+  EXPECT_EQ(run_cli("station --out-dir " + dir).status, 1);
+  EXPECT_EQ(run_cli("station --cameras sim:// --out-dir " + dir + " --format txt").status, 1);
 }
 
 TEST(Cli, EvaluateGrabFeatures) {
   const std::string dir = temp_dir("posecal_eval");
   const std::string yml = dir + "/sim7.yml";
-  CliRun r = run("simulate --seed 7 --out " + yml + " --json", true);
+  CliRun r = run_cli("simulate --seed 7 --out " + yml + " --json", true);
   ASSERT_EQ(r.status, 0) << r.out;
   const auto sim = nlohmann::json::parse(r.out);
 
   // evaluate: the same simulated camera gives the session's eps_test and eps_gt.
-  r = run("evaluate --result " + yml + " --camera 'sim://?seed=7' --json", true);
+  r = run_cli("evaluate --result " + yml + " --camera 'sim://?seed=7' --json", true);
   ASSERT_EQ(r.status, 0) << r.out;
   auto ev = nlohmann::json::parse(r.out);
   EXPECT_NEAR(ev["eps_test"].get<double>(), sim["eps_test"].get<double>(), 1e-6);
   EXPECT_NEAR(ev["eps_gt"].get<double>(), sim["eps_gt"].get<double>(), 1e-6);
   EXPECT_GE(ev["test_frames"].get<int>(), 40);
   // Another camera: the calibration does not fit it.
-  r = run("evaluate --result " + yml + " --camera 'sim://?seed=8' --json", true);
+  r = run_cli("evaluate --result " + yml + " --camera 'sim://?seed=8' --json", true);
   ASSERT_EQ(r.status, 0) << r.out;
   EXPECT_GT(nlohmann::json::parse(r.out)["eps_gt"].get<double>(), 10 * sim["eps_gt"].get<double>());
-  EXPECT_EQ(run("evaluate --result /nonexistent.yml --camera sim://").status, 2);
-  EXPECT_EQ(run("evaluate --camera sim://").status, 1);
+  EXPECT_EQ(run_cli("evaluate --result /nonexistent.yml --camera sim://").status, 2);
+  EXPECT_EQ(run_cli("evaluate --camera sim://").status, 1);
 
   // grab: PNG files that show the board.
-  r = run("grab --camera 'sim://?seed=7' --count 4 --out " + dir + "/frames --json", true);
+  r = run_cli("grab --camera 'sim://?seed=7' --count 4 --out " + dir + "/frames --json", true);
   ASSERT_EQ(r.status, 0) << r.out;
   const auto g = nlohmann::json::parse(r.out);
   ASSERT_EQ(g["files"].size(), 4u);
@@ -703,23 +687,23 @@ TEST(Cli, EvaluateGrabFeatures) {
   }
   EXPECT_GE(with_board, 3);
   // The grabbed frames are a camera for evaluate too (images://).
-  r = run("evaluate --result " + yml + " --camera images://" + dir + "/frames --json", true);
+  r = run_cli("evaluate --result " + yml + " --camera images://" + dir + "/frames --json", true);
   ASSERT_EQ(r.status, 0) << r.out;
   ev = nlohmann::json::parse(r.out);
   EXPECT_EQ(ev["source"], "camera");
   EXPECT_TRUE(ev["eps_gt"].is_null());
   EXPECT_LT(ev["eps_test"].get<double>(), 0.5);
-  r = run("evaluate --result " + yml + " --camera images://" + dir + "/frames");
+  r = run_cli("evaluate --result " + yml + " --camera images://" + dir + "/frames");
   EXPECT_EQ(r.status, 0);
   EXPECT_NE(r.out.find("eps_test"), std::string::npos) << r.out;
-  EXPECT_EQ(run("grab --camera sim:// --out " + dir + "/x").status, 1);  // no --count
-  EXPECT_EQ(run("grab --camera sim:// --count 0 --out " + dir + "/x").status, 1);
-  r = run("grab --camera external --count 1 --timeout-ms 50 --out " + dir + "/x");
+  EXPECT_EQ(run_cli("grab --camera sim:// --out " + dir + "/x").status, 1);  // no --count
+  EXPECT_EQ(run_cli("grab --camera sim:// --count 0 --out " + dir + "/x").status, 1);
+  r = run_cli("grab --camera external --count 1 --timeout-ms 50 --out " + dir + "/x");
   EXPECT_EQ(r.status, 2);
   EXPECT_NE(r.out.find("POSECAL_E_TIMEOUT"), std::string::npos) << r.out;
 
   // features
-  r = run("features --camera 'sim://?seed=7' --json", true);
+  r = run_cli("features --camera 'sim://?seed=7' --json", true);
   ASSERT_EQ(r.status, 0) << r.out;
   const auto feats = nlohmann::json::parse(r.out);
   ASSERT_FALSE(feats.empty());
@@ -728,16 +712,16 @@ TEST(Cli, EvaluateGrabFeatures) {
       EXPECT_TRUE(f.contains(k)) << k << " in " << f.dump();
     }
   }
-  r = run("features --camera 'sim://?seed=7'");
+  r = run_cli("features --camera 'sim://?seed=7'");
   EXPECT_EQ(r.status, 0);
   EXPECT_NE(r.out.find("Width"), std::string::npos) << r.out;
-  EXPECT_EQ(run("features --camera nosuch://x").status, 2);
+  EXPECT_EQ(run_cli("features --camera nosuch://x").status, 2);
 }
 
 TEST(Cli, LiveCalibrationPrintsJsonEvents) {
   const std::string dir = temp_dir("posecal_live");
   const CliRun r =
-      run("calibrate --camera 'sim://?seed=9' --json --out " + dir + "/live.yml", true);
+      run_cli("calibrate --camera 'sim://?seed=9' --json --out " + dir + "/live.yml", true);
   ASSERT_EQ(r.status, 0) << r.out;
   const auto lines = lines_of(r.out);
   ASSERT_GT(lines.size(), 5u);
@@ -768,16 +752,17 @@ TEST(Cli, LiveWindowOffscreenAndUnreachableDisplay) {
   // Four keyframes at most: the window shows every frame until the run ends (exit code 3).
   // The result screen stays --result-seconds (no key is pressed offscreen).
   const auto t0 = std::chrono::steady_clock::now();
-  CliRun r = run("calibrate --camera 'sim://?seed=15' --max-keyframes 4 --result-seconds 2 --json",
-                 true, "DISPLAY=:97 POSECAL_WINDOW=force QT_QPA_PLATFORM=offscreen");
+  CliRun r =
+      run_cli("calibrate --camera 'sim://?seed=15' --max-keyframes 4 --result-seconds 2 --json",
+              true, "DISPLAY=:97 POSECAL_WINDOW=force QT_QPA_PLATFORM=offscreen");
   EXPECT_GE(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(), 2.0);
   ASSERT_EQ(r.status, 3) << r.out;
   EXPECT_EQ(nlohmann::json::parse(lines_of(r.out).back())["event"], "result");
   // No X server at :97: headless, with a message (a folder of three frames: over at once).
   const std::string dir = temp_dir("posecal_window");
-  ASSERT_EQ(run("grab --camera 'sim://?seed=15' --count 3 --out " + dir).status, 0);
-  r = run("calibrate --camera images://" + dir, false,
-          "-u POSECAL_WINDOW -u QT_QPA_PLATFORM DISPLAY=:97");
+  ASSERT_EQ(run_cli("grab --camera 'sim://?seed=15' --count 3 --out " + dir).status, 0);
+  r = run_cli("calibrate --camera images://" + dir, false,
+              "-u POSECAL_WINDOW -u QT_QPA_PLATFORM DISPLAY=:97");
   EXPECT_EQ(r.status, 2) << r.out;  // three frames: no calibration
   EXPECT_NE(r.out.find("no X server answers at DISPLAY=:97"), std::string::npos) << r.out;
 }
@@ -958,7 +943,7 @@ std::string read_text(const std::string& path) {
 // One short simulated calibration (seed 3, 4 keyframes: k3 != 0) written as `out` with `args`.
 CliRun simulate_to(const std::string& out, const std::string& args = "") {
   fs::remove(out);
-  return run("simulate --seed 3 --max-keyframes 4 --json --out " + out + " " + args, true);
+  return run_cli("simulate --seed 3 --max-keyframes 4 --json --out " + out + " " + args, true);
 }
 
 // The intrinsics of a --json result, in the model's parameter order.
@@ -1004,13 +989,13 @@ TEST(Cli, FormatUnknownOrNotMatchingTheFileIsAUsageError) {
   const auto t0 = std::chrono::steady_clock::now();
   CliRun r = simulate_to(dir + "/x.yml", "--format halcon7");
   EXPECT_EQ(r.status, 1);
-  r = run("simulate --seed 3 --out " + dir + "/x.yml --format halcon7");
+  r = run_cli("simulate --seed 3 --out " + dir + "/x.yml --format halcon7");
   EXPECT_NE(r.out.find("--format"), std::string::npos) << r.out;
   EXPECT_NE(r.out.find("halcon7"), std::string::npos) << r.out;
-  r = run("simulate --seed 3 --out " + dir + "/x.yml --format mrcal");
+  r = run_cli("simulate --seed 3 --out " + dir + "/x.yml --format mrcal");
   EXPECT_EQ(r.status, 1) << r.out;
   EXPECT_NE(r.out.find(".cameramodel"), std::string::npos) << r.out;
-  r = run("calibrate --images " + dir + " --out " + dir + "/x.txt");
+  r = run_cli("calibrate --images " + dir + " --out " + dir + "/x.txt");
   EXPECT_EQ(r.status, 1) << r.out;
   // Refused before any calibration ran, and nothing written.
   EXPECT_LT(std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count(), 10);
@@ -1026,7 +1011,7 @@ TEST(Cli, FormatKalibrAndHalconRefuseAModelTheyCannotHold) {
   for (const std::string format : {"kalibr", "halcon"}) {
     const std::string out = dir + (format == "kalibr" ? "/camchain.yaml" : "/camera.dat");
     const CliRun r =
-        run("simulate --seed 3 --max-keyframes 4 --format " + format + " --out " + out);
+        run_cli("simulate --seed 3 --max-keyframes 4 --format " + format + " --out " + out);
     EXPECT_EQ(r.status, 2) << r.out;
     for (const std::string& needle :
          {format, std::string("opencv5"), std::string(format == "kalibr" ? "k3" : "0.1 px"),
@@ -1040,9 +1025,11 @@ TEST(Cli, FormatKalibrAndHalconRefuseAModelTheyCannotHold) {
 // The station's --format names a format: one file per camera with the format's extension.
 TEST(Cli, FormatOfTheStationFiles) {
   const std::string dir = temp_dir("posecal_formats_station");
-  const CliRun r = run("station --cameras 'sim://?seed=3' --max-keyframes 4 --format mrcal "
-                       "--out-dir " + dir + " --json",
-                       true);
+  const CliRun r = run_cli(
+      "station --cameras 'sim://?seed=3' --max-keyframes 4 --format mrcal "
+      "--out-dir " +
+          dir + " --json",
+      true);
   ASSERT_TRUE(r.status == 0 || r.status == 3) << r.out;
   const auto j = nlohmann::json::parse(r.out);
   const std::string file = j["cameras"][0]["file"].get<std::string>();
@@ -1077,14 +1064,14 @@ TEST(Cli, QualitySpecGivesAVerdictWithReasonsAndExitCodes) {
                    "k1": {"nominal": 0.5, "tolerance_abs": 0.05}}})");
   for (const int seed : {1, 2}) {
     const std::string base = "simulate --seed " + std::to_string(seed) + " --json --spec ";
-    CliRun r = run(base + pass, true);
+    CliRun r = run_cli(base + pass, true);
     ASSERT_EQ(r.status, 0) << r.out;
     auto j = nlohmann::json::parse(r.out);
     EXPECT_EQ(j["verdict"], "pass") << j["verdict_reasons"].dump();
     EXPECT_TRUE(j["verdict_reasons"].empty());
     EXPECT_EQ(j["spec"], pass);
 
-    r = run(base + fail, true);
+    r = run_cli(base + fail, true);
     EXPECT_EQ(r.status, 4) << r.out;  // converged, but the specification failed
     j = nlohmann::json::parse(r.out);
     EXPECT_EQ(j["verdict"], "fail");
@@ -1095,14 +1082,14 @@ TEST(Cli, QualitySpecGivesAVerdictWithReasonsAndExitCodes) {
     EXPECT_EQ(reasons.find("fx"), std::string::npos) << reasons;  // within its tolerance
   }
   // Text mode says it too.
-  CliRun r = run("simulate --seed 1 --spec " + fail);
+  CliRun r = run_cli("simulate --seed 1 --spec " + fail);
   EXPECT_EQ(r.status, 4);
   EXPECT_NE(r.out.find("quality spec " + fail + ": FAIL"), std::string::npos) << r.out;
 
   // A station: each camera's verdict in the summary, the count that passed, exit code 4.
-  r = run("station --cameras 'sim://?seed=1,sim://?seed=2' --out-dir " + dir + "/station --json --spec " +
-              fail,
-          true);
+  r = run_cli("station --cameras 'sim://?seed=1,sim://?seed=2' --out-dir " + dir +
+                  "/station --json --spec " + fail,
+              true);
   EXPECT_EQ(r.status, 4) << r.out;
   auto sum = nlohmann::json::parse(r.out);
   EXPECT_EQ(sum["converged"], 2);
@@ -1119,12 +1106,12 @@ TEST(Cli, QualitySpecGivesAVerdictWithReasonsAndExitCodes) {
         {"notol.json", R"({"parameters": {"fx": {"nominal": 1000}}})", "needs 'tolerance'"},
         {"broken.json", R"({"max_eps_res_px": )", "not valid JSON"}}) {
     const std::string path = write_spec(dir, name, text);
-    r = run("simulate --seed 1 --spec " + path);
+    r = run_cli("simulate --seed 1 --spec " + path);
     EXPECT_EQ(r.status, 2) << name << ": " << r.out;
     EXPECT_NE(r.out.find(named), std::string::npos) << name << ": " << r.out;
     EXPECT_NE(r.out.find(path), std::string::npos) << name << ": " << r.out;
   }
-  r = run("simulate --seed 1 --spec " + dir + "/missing.json");
+  r = run_cli("simulate --seed 1 --spec " + dir + "/missing.json");
   EXPECT_EQ(r.status, 2) << r.out;
   EXPECT_NE(r.out.find("does not exist"), std::string::npos) << r.out;
 }
@@ -1136,7 +1123,7 @@ TEST(Cli, RecordsKeepTheRunAndNeverCostTheCalibration) {
   const std::string dir = temp_dir("posecal_records");
   const std::string db = dir + "/records.sqlite";
   const std::string base = "simulate --seed 2 --json --records " + db;
-  CliRun r = run(base + " --station-id line1-st2 --operator-id op7 --lens-id M12-6mm", true);
+  CliRun r = run_cli(base + " --station-id line1-st2 --operator-id op7 --lens-id M12-6mm", true);
   ASSERT_EQ(r.status, 0) << r.out;
   auto j = nlohmann::json::parse(r.out);
   ASSERT_TRUE(j["run_id"].is_string()) << r.out;
@@ -1154,7 +1141,7 @@ TEST(Cli, RecordsKeepTheRunAndNeverCostTheCalibration) {
     ASSERT_TRUE(rec.summary.expected_error_px.has_value());
     EXPECT_EQ(*rec.summary.expected_error_px, j["expected_error_px"].get<double>());
   }
-  r = run(base + " --run-id " + run_id, true);
+  r = run_cli(base + " --run-id " + run_id, true);
   ASSERT_EQ(r.status, 0) << r.out;
   j = nlohmann::json::parse(r.out);
   ASSERT_TRUE(j["records_note"].is_string()) << r.out;
@@ -1162,38 +1149,39 @@ TEST(Cli, RecordsKeepTheRunAndNeverCostTheCalibration) {
   EXPECT_EQ(posecal::RecordStore::open(db)->get_run(run_id).summary.identity.station_id, "line1-st2");
 
   // The readers: an unknown run is a clear error; show names the run's ids and keyframes.
-  r = run("records show no-such-run --db " + db);
+  r = run_cli("records show no-such-run --db " + db);
   EXPECT_EQ(r.status, 2) << r.out;
   EXPECT_NE(r.out.find("no run no-such-run"), std::string::npos) << r.out;
-  r = run("records show " + run_id.substr(0, 8) + " --db " + db + " --json", true);
+  r = run_cli("records show " + run_id.substr(0, 8) + " --db " + db + " --json", true);
   ASSERT_EQ(r.status, 0) << r.out;
   EXPECT_EQ(nlohmann::json::parse(r.out)["lens_id"], "M12-6mm");
-  r = run("records list --db " + dir + "/missing-dir/r.sqlite");
+  r = run_cli("records list --db " + dir + "/missing-dir/r.sqlite");
   EXPECT_EQ(r.status, 2) << r.out;
   EXPECT_NE(r.out.find("missing-dir/r.sqlite"), std::string::npos) << r.out;
 
-  r = run("simulate --seed 2 --json --journal " + dir + "/s2.journal --records " + dir +
-              "/no/such/dir/r.sqlite",
-          true);
+  r = run_cli("simulate --seed 2 --json --journal " + dir + "/s2.journal --records " + dir +
+                  "/no/such/dir/r.sqlite",
+              true);
   ASSERT_EQ(r.status, 0) << r.out;  // converged all the same
   j = nlohmann::json::parse(r.out);
   ASSERT_TRUE(j["records_note"].is_string()) << r.out;
   EXPECT_NE(j["records_note"].get<std::string>().find("no/such/dir/r.sqlite"), std::string::npos);
   EXPECT_TRUE(j["converged"].get<bool>());
   // The journal is the spool: recorded afterwards, the run re-solves to the same calibration.
-  r = run("records import " + dir + "/s2.journal --db " + db + " --lens-id M12-6mm --json", true);
+  r = run_cli("records import " + dir + "/s2.journal --db " + db + " --lens-id M12-6mm --json",
+              true);
   ASSERT_EQ(r.status, 0) << r.out;
   const auto imported = nlohmann::json::parse(r.out);
   EXPECT_EQ(imported["state"], "converged");
   EXPECT_EQ(imported["keyframes"], j["keyframes"]);
   const std::string imported_id = imported["run_id"];
-  r = run("records resolve " + imported_id + " --db " + db + " --json", true);
+  r = run_cli("records resolve " + imported_id + " --db " + db + " --json", true);
   ASSERT_EQ(r.status, 0) << r.out;
   const auto solved = nlohmann::json::parse(r.out);
   EXPECT_TRUE(solved["identical"].get<bool>()) << r.out;
   for (const char* k : {"fx", "fy", "cx", "cy", "k1"})
     EXPECT_EQ(solved["recomputed"][k].get<double>(), j[k].get<double>()) << k;  // bit for bit
-  r = run("records import " + db + " --db " + db);  // not a journal
+  r = run_cli("records import " + db + " --db " + db);                          // not a journal
   EXPECT_EQ(r.status, 2) << r.out;
 }
 
@@ -1244,7 +1232,7 @@ TEST(Cli, FleetPriorFromTheRecords) {
   posecal::write_camera_model(dir + "/unit.yml", unit);
   const std::string base =
       "simulate --seed 5 --camera-model " + dir + "/unit.yml --json --lens-id L1 --records " + db;
-  CliRun r = run(base + " --prior fleet", true);
+  CliRun r = run_cli(base + " --prior fleet", true);
   ASSERT_EQ(r.status, 0) << r.out;
   auto j = nlohmann::json::parse(r.out);
   ASSERT_TRUE(j["prior"]["used"].get<bool>()) << j["prior"].dump();
@@ -1259,12 +1247,12 @@ TEST(Cli, FleetPriorFromTheRecords) {
   const std::string run_id = j["run_id"];
   // More units in the store now: the re-solve still uses the prior the run had.
   write_fleet(db, 3);
-  CliRun rr = run("records resolve " + run_id + " --db " + db + " --json", true);
+  CliRun rr = run_cli("records resolve " + run_id + " --db " + db + " --json", true);
   ASSERT_EQ(rr.status, 0) << rr.out;
   EXPECT_TRUE(nlohmann::json::parse(rr.out)["identical"].get<bool>()) << rr.out;
 
   // The same unit and operator without the prior: more keyframes for the same figure.
-  r = run(base + " --accuracy-px 0.4", true);
+  r = run_cli(base + " --accuracy-px 0.4", true);
   ASSERT_EQ(r.status, 0) << r.out;
   j = nlohmann::json::parse(r.out);
   EXPECT_FALSE(j.contains("prior")) << r.out;
@@ -1273,9 +1261,9 @@ TEST(Cli, FleetPriorFromTheRecords) {
   // Too few units: no prior, and why.
   const std::string small = dir + "/small.sqlite";
   write_fleet(small, 5);
-  r = run("simulate --seed 5 --json --lens-id L1 --camera-model " + dir +
-              "/unit.yml --prior fleet --records " + small,
-          true);
+  r = run_cli("simulate --seed 5 --json --lens-id L1 --camera-model " + dir +
+                  "/unit.yml --prior fleet --records " + small,
+              true);
   ASSERT_EQ(r.status, 0) << r.out;
   j = nlohmann::json::parse(r.out);
   EXPECT_FALSE(j["prior"]["used"].get<bool>());
@@ -1284,14 +1272,15 @@ TEST(Cli, FleetPriorFromTheRecords) {
   EXPECT_TRUE(j["converged"].get<bool>());
 
   // No store: refused before anything runs.
-  r = run("simulate --seed 5 --prior fleet");
+  r = run_cli("simulate --seed 5 --prior fleet");
   EXPECT_NE(r.status, 0);
   EXPECT_NE(r.out.find("needs 'records'"), std::string::npos) << r.out;
 }
 
 TEST(Cli, AStationRunOwnsItsDirectory) {
   const std::string dir = temp_dir("posecal_station_dir");
-  CliRun r = run("station --cameras 'sim://?seed=1,sim://?seed=2' --out-dir " + dir + " --json", true);
+  CliRun r =
+      run_cli("station --cameras 'sim://?seed=1,sim://?seed=2' --out-dir " + dir + " --json", true);
   ASSERT_EQ(r.status, 0) << r.out;
   const auto first = nlohmann::json::parse(r.out);
   ASSERT_TRUE(first["station_run_id"].is_string()) << r.out;
@@ -1300,13 +1289,13 @@ TEST(Cli, AStationRunOwnsItsDirectory) {
   EXPECT_TRUE(first["interrupted_cameras"].empty());
   ASSERT_TRUE(fs::exists(dir + "/sim-2.yml"));
 
-  r = run("station --cameras 'sim://?seed=1' --out-dir " + dir);
+  r = run_cli("station --cameras 'sim://?seed=1' --out-dir " + dir);
   EXPECT_EQ(r.status, 1) << r.out;
   EXPECT_NE(r.out.find("--force"), std::string::npos) << r.out;
   EXPECT_NE(r.out.find(first["station_run_id"].get<std::string>()), std::string::npos) << r.out;
   EXPECT_TRUE(fs::exists(dir + "/sim-2.yml"));  // nothing was touched
 
-  r = run("station --cameras 'sim://?seed=1' --out-dir " + dir + " --json --force", true);
+  r = run_cli("station --cameras 'sim://?seed=1' --out-dir " + dir + " --json --force", true);
   ASSERT_EQ(r.status, 0) << r.out;
   const auto second = nlohmann::json::parse(r.out);
   EXPECT_NE(second["station_run_id"], first["station_run_id"]);

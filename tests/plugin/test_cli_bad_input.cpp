@@ -21,31 +21,14 @@
 #include <thread>
 #include <vector>
 
+#include "cli_child.hpp"
+
 namespace fs = std::filesystem;
 
 namespace {
 
-struct CliRun {
-  int status = -1;  // the exit code; -1 if the CLI died of a signal
-  std::string out;
-};
-
-// Runs the CLI through the shell; stderr is merged into `out` unless `stdout_only`.
-// `env` replaces the default environment change (no display). (As test_cli.cpp's run().)
-CliRun run(const std::string& args, bool stdout_only = false,
-           const std::string& env = "-u DISPLAY") {
-  CliRun r;
-  const std::string cmd = "env " + env + " " + std::string(POSECAL_CLI) + " " + args +
-                          (stdout_only ? " 2>/dev/null" : " 2>&1");
-  FILE* p = popen(cmd.c_str(), "r");
-  if (!p) return r;
-  std::array<char, 4096> buf;
-  size_t n;
-  while ((n = fread(buf.data(), 1, buf.size(), p)) > 0) r.out.append(buf.data(), n);
-  const int rc = pclose(p);
-  r.status = WIFEXITED(rc) ? WEXITSTATUS(rc) : -1;
-  return r;
-}
+using posecal_test::CliRun;
+using posecal_test::run_cli;
 
 std::string temp_file(const std::string& name, const std::string& text) {
   const std::string path = (fs::path(testing::TempDir()) / ("posecal_cli_bad_" + name)).string();
@@ -79,8 +62,8 @@ TEST(CliBadInput, FifoAsResultDoesNotBlock) {
   const std::string fifo = (fs::path(testing::TempDir()) / "posecal_cli_bad_fifo.yml").string();
   std::remove(fifo.c_str());
   ASSERT_EQ(mkfifo(fifo.c_str(), 0600), 0);
-  const CliRun r = run("evaluate --result " + fifo + " --camera 'sim://?seed=1'", false,
-                       "-u DISPLAY timeout -s KILL 30");
+  const CliRun r = run_cli("evaluate --result " + fifo + " --camera 'sim://?seed=1'", false,
+                           "-u DISPLAY timeout -s KILL 30");
   expect_refused(r, {"not a regular file", "POSECAL_E_INVALID_ARGUMENT"});
   std::remove(fifo.c_str());
 }
@@ -89,16 +72,16 @@ TEST(CliBadInput, FifoAsResultDoesNotBlock) {
 TEST(CliBadInput, DeeplyNestedModelFileDoesNotCrash) {
   const std::string deep =
       temp_file("deep.yml", "%YAML:1.0\n---\na: " + std::string(33000, '[') + "\n");
-  expect_refused(run("evaluate --result " + deep + " --camera 'sim://?seed=1'"),
+  expect_refused(run_cli("evaluate --result " + deep + " --camera 'sim://?seed=1'"),
                  {"nesting", "64", "POSECAL_E_INVALID_ARGUMENT"});
-  expect_refused(run("calibrate --camera 'sim://?model=" + deep + "' --max-keyframes 3"),
+  expect_refused(run_cli("calibrate --camera 'sim://?model=" + deep + "' --max-keyframes 3"),
                  {"nesting"});
 }
 
 // dt u clamped K to 255: eps_gt 428 px, exit 0 before.
 TEST(CliBadInput, IntegerMatrixModelIsRefused) {
   const std::string u = temp_file("dtu.yml", model_yaml(kSize720p, "1000.", "u"));
-  expect_refused(run("evaluate --result " + u + " --camera 'sim://?seed=1'"),
+  expect_refused(run_cli("evaluate --result " + u + " --camera 'sim://?seed=1'"),
                  {"dt 'u'", "camera_matrix"});
 }
 
@@ -108,7 +91,7 @@ TEST(CliBadInput, HugeModelsAreInvalidArguments) {
        {"image_width: 100000\nimage_height: 100000\n", "image_width: 32768\nimage_height: 720\n",
         "image_width: 20000\nimage_height: 15000\n"}) {
     const std::string m = temp_file("huge.yml", model_yaml(size, "10000."));
-    expect_refused(run("evaluate --result " + m + " --camera 'sim://?seed=1&model=" + m + "'"),
+    expect_refused(run_cli("evaluate --result " + m + " --camera 'sim://?seed=1&model=" + m + "'"),
                    {"POSECAL_E_INVALID_ARGUMENT", "limit"});
   }
 }
@@ -117,8 +100,8 @@ TEST(CliBadInput, HugeModelsAreInvalidArguments) {
 TEST(CliBadInput, AbsurdBoardSpecsAreInvalidArguments) {
   for (const std::string spec : {"charuco:9x6:1e-300:1e-301:DICT_4X4_50",
                                  "charuco:9x6:0.028:0.0001:DICT_4X4_50", "chessboard:9x6:1e-20"}) {
-    expect_refused(run("evaluate --result " + std::string(POSECAL_SOURCE_DIR) +
-                       "/data/c525_reference.yml --camera 'sim://?seed=1' --target " + spec),
+    expect_refused(run_cli("evaluate --result " + std::string(POSECAL_SOURCE_DIR) +
+                           "/data/c525_reference.yml --camera 'sim://?seed=1' --target " + spec),
                    {"POSECAL_E_INVALID_ARGUMENT", spec});
   }
 }
@@ -126,17 +109,17 @@ TEST(CliBadInput, AbsurdBoardSpecsAreInvalidArguments) {
 // fx = 1e-9 printed "eps_test -1.0000 px over 0 frames" with exit 0 before.
 TEST(CliBadInput, ModelThatFitsNoFrameIsAnError) {
   const std::string m = temp_file("fx.yml", model_yaml(kSize720p, "1e-9"));
-  const CliRun r = run("evaluate --result " + m + " --camera 'sim://?seed=1'");
+  const CliRun r = run_cli("evaluate --result " + m + " --camera 'sim://?seed=1'");
   expect_refused(r, {"POSECAL_E_INVALID_ARGUMENT", "cannot project the test set"});
   EXPECT_EQ(r.out.find("-1.0000"), std::string::npos) << r.out;
-  const CliRun j = run("evaluate --json --result " + m + " --camera 'sim://?seed=1'", true);
+  const CliRun j = run_cli("evaluate --json --result " + m + " --camera 'sim://?seed=1'", true);
   EXPECT_EQ(j.status, 2) << j.out;
 }
 
 // One invalid UTF-8 byte in a controller's reply ended the calibration before (nlohmann's dump
 // threw); it is answered with a protocol_error line that is valid JSON, and the run goes on.
 TEST(CliBadInput, RobotReplyWithInvalidUtf8IsAProtocolError) {
-  const CliRun r = run(
+  const CliRun r = run_cli(
       "calibrate --camera 'sim://?seed=13&operator=robot' --guide stdio --max-keyframes 4", true,
       "-u DISPLAY sh -c '{ printf \"\\377 where\\n\"; yes reached | head -n 2000; } | \"$0\" "
       "\"$@\"'");
@@ -189,8 +172,8 @@ TEST(CliBadInput, FakeXServerRunsHeadless) {
     }
   });
   const CliRun r =
-      run("calibrate --camera 'sim://?seed=1' --max-seconds 3 --max-keyframes 3", false,
-          "-u POSECAL_WINDOW -u QT_QPA_PLATFORM DISPLAY=127.0.0.1:" + std::to_string(display));
+      run_cli("calibrate --camera 'sim://?seed=1' --max-seconds 3 --max-keyframes 3", false,
+              "-u POSECAL_WINDOW -u QT_QPA_PLATFORM DISPLAY=127.0.0.1:" + std::to_string(display));
   stop = true;
   shutdown(listener, SHUT_RDWR);
   close(listener);

@@ -17,6 +17,7 @@
 
 #include "board/board.hpp"
 #include "board/views.hpp"
+#include "cli_child.hpp"
 #include "io/model_file.hpp"
 #include "lens/reference_models.hpp"
 #include "sim/synthetic.hpp"
@@ -25,27 +26,8 @@ namespace fs = std::filesystem;
 
 namespace {
 
-struct CliRun {
-  int status = -1;
-  std::string out;
-};
-
-// Runs the CLI through the shell; stderr is merged into `out` unless `stdout_only`.
-// `env` replaces the default environment change (no display).
-CliRun run(const std::string& args, bool stdout_only = false,
-           const std::string& env = "-u DISPLAY") {
-  CliRun r;
-  const std::string cmd = "env " + env + " " + std::string(POSECAL_CLI) + " " + args +
-                          (stdout_only ? " 2>/dev/null" : " 2>&1");
-  FILE* p = popen(cmd.c_str(), "r");
-  if (!p) return r;
-  std::array<char, 4096> buf;
-  size_t n;
-  while ((n = fread(buf.data(), 1, buf.size(), p)) > 0) r.out.append(buf.data(), n);
-  const int rc = pclose(p);
-  r.status = WIFEXITED(rc) ? WEXITSTATUS(rc) : -1;
-  return r;
-}
+using posecal_test::CliRun;
+using posecal_test::run_cli;
 
 fs::path fresh_dir(const std::string& name) {
   const fs::path dir = fs::path(testing::TempDir()) / name;
@@ -113,8 +95,9 @@ TEST(CliBounded, AStationCameraThatNeverSeesTheBoardEndsAfterTheBoardTimeout) {
   posecal::write_camera_model(
       model, posecal::CameraModel::opencv5(64, 48, 60, 60, 31.5, 23.5, {0, 0, 0, 0, 0}));
   const auto t0 = std::chrono::steady_clock::now();
-  const CliRun r = run("station --cameras 'sim://?model=" + model + "' --out-dir " +
-                       (dir / "out").string() + " --board-timeout-s 2 --max-seconds 300 --events");
+  const CliRun r =
+      run_cli("station --cameras 'sim://?model=" + model + "' --out-dir " + (dir / "out").string() +
+              " --board-timeout-s 2 --max-seconds 300 --events");
   const double s = seconds_since(t0);
   EXPECT_LT(s, 60.0) << r.out;
   EXPECT_NE(r.status, 0) << r.out;
@@ -146,9 +129,9 @@ TEST(CliBounded, CalibrateImagesRejectsAHugeImageAndSkipsAFifo) {
   write_black_png(dir / "huge.png", 20000);
   ASSERT_EQ(mkfifo((dir / "pipe.png").c_str(), 0600), 0);
   const auto t0 = std::chrono::steady_clock::now();
-  const CliRun r = run("calibrate --images " + dir.string() + " --out " +
-                           (dir.parent_path() / "posecal_cli_bounded.yml").string() + " --json",
-                       true);
+  const CliRun r = run_cli("calibrate --images " + dir.string() + " --out " +
+                               (dir.parent_path() / "posecal_cli_bounded.yml").string() + " --json",
+                           true);
   EXPECT_LT(seconds_since(t0), 60.0);
   ASSERT_EQ(r.status, 0) << r.out;
   const auto j = nlohmann::json::parse(r.out);
@@ -168,7 +151,7 @@ TEST(CliBounded, CalibrateImagesRejectsAHugeImageAndSkipsAFifo) {
 // are lines as they happen, and a camera that sees nothing still says where it is every 10 s.
 TEST(CliBounded, TextModeStationShowsProgressAndAHeartbeat) {
   const fs::path dir = fresh_dir("posecal_cli_station_text");
-  CliRun r = run("station --cameras 'sim://?seed=3' --out-dir " + (dir / "a").string(), true);
+  CliRun r = run_cli("station --cameras 'sim://?seed=3' --out-dir " + (dir / "a").string(), true);
   ASSERT_EQ(r.status, 0) << r.out;
   for (const char* line : {"sim://?seed=3: calibrating camera 'sim-3'",
                            "sim://?seed=3: keyframe 1 captured", "sim://?seed=3: keyframe 2 captured",
@@ -178,9 +161,9 @@ TEST(CliBounded, TextModeStationShowsProgressAndAHeartbeat) {
   const std::string model = (dir / "tiny.yml").string();
   posecal::write_camera_model(
       model, posecal::CameraModel::opencv5(64, 48, 60, 60, 31.5, 23.5, {0, 0, 0, 0, 0}));
-  r = run("station --cameras 'sim://?model=" + model + "' --out-dir " + (dir / "b").string() +
-              " --board-timeout-s 12 --max-seconds 300",
-          true);
+  r = run_cli("station --cameras 'sim://?model=" + model + "' --out-dir " + (dir / "b").string() +
+                  " --board-timeout-s 12 --max-seconds 300",
+              true);
   EXPECT_NE(r.status, 0) << r.out;
   EXPECT_NE(r.out.find("10 s: "), std::string::npos) << r.out;
   EXPECT_NE(r.out.find(" frames, 0 keyframes, waiting_for_board"), std::string::npos) << r.out;

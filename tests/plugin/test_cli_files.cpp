@@ -20,29 +20,17 @@
 #include <string>
 #include <vector>
 
+#include "cli_child.hpp"
+
 namespace fs = std::filesystem;
 using Json = nlohmann::json;
 using Clock = std::chrono::steady_clock;
 
 namespace {
 
-struct CliRun {
-  int status = -1;
-  std::string out;
-};
-
-// Runs a shell command line (without DISPLAY); stdout and stderr merged into `out`.
-CliRun shell(const std::string& cmd) {
-  CliRun r;
-  FILE* p = popen(("{ unset DISPLAY; " + cmd + "; } 2>&1").c_str(), "r");
-  if (!p) return r;
-  std::array<char, 4096> buf;
-  size_t n;
-  while ((n = fread(buf.data(), 1, buf.size(), p)) > 0) r.out.append(buf.data(), n);
-  const int rc = pclose(p);
-  r.status = WIFEXITED(rc) ? WEXITSTATUS(rc) : -1;
-  return r;
-}
+using posecal_test::CliChild;
+using posecal_test::CliRun;
+using posecal_test::shell;
 
 const std::string kCli = POSECAL_CLI;
 
@@ -59,74 +47,6 @@ std::string read_all(const fs::path& p) {
   ss << in.rdbuf();
   return ss.str();
 }
-
-// The CLI as a child process whose stdout goes to a file and whose stderr the test reads line
-// by line (the JSON events), to send it signals at chosen moments.
-class Child {
- public:
-  Child(const std::vector<std::string>& args, const fs::path& stdout_file) {
-    int fds[2];
-    if (::pipe(fds) != 0) return;
-    pid_ = ::fork();
-    if (pid_ == 0) {
-      ::dup2(fds[1], STDERR_FILENO);
-      const int out = ::open(stdout_file.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
-      ::dup2(out, STDOUT_FILENO);
-      ::close(fds[0]);
-      ::unsetenv("DISPLAY");
-      std::vector<char*> argv{const_cast<char*>(kCli.c_str())};
-      for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
-      argv.push_back(nullptr);
-      ::execv(kCli.c_str(), argv.data());
-      ::_exit(127);
-    }
-    ::close(fds[1]);
-    err_ = fds[0];
-  }
-  ~Child() {
-    if (pid_ > 0 && !reaped_) {
-      ::kill(pid_, SIGKILL);
-      ::waitpid(pid_, nullptr, 0);
-    }
-    if (err_ >= 0) ::close(err_);
-  }
-
-  // Reads stderr until `done(line)` holds for a line or `timeout_s` passes; false on timeout.
-  bool wait_for(const std::function<bool(const std::string&)>& done, double timeout_s) {
-    const auto t0 = Clock::now();
-    while (std::chrono::duration<double>(Clock::now() - t0).count() < timeout_s) {
-      for (size_t nl; (nl = buf_.find('\n')) != std::string::npos;) {
-        const std::string line = buf_.substr(0, nl);
-        buf_.erase(0, nl + 1);
-        log_ += line + "\n";
-        if (done(line)) return true;
-      }
-      pollfd p{err_, POLLIN, 0};
-      if (::poll(&p, 1, 200) <= 0) continue;
-      char chunk[4096];
-      const ssize_t n = ::read(err_, chunk, sizeof chunk);
-      if (n <= 0) return false;
-      buf_.append(chunk, static_cast<size_t>(n));
-    }
-    return false;
-  }
-  void signal(int signo) const { ::kill(pid_, signo); }
-  // The raw wait status; the rest of stderr is drained into the log.
-  int wait() {
-    wait_for([](const std::string&) { return false; }, 60);
-    int status = 0;
-    ::waitpid(pid_, &status, 0);
-    reaped_ = true;
-    return status;
-  }
-  const std::string& log() const { return log_; }
-
- private:
-  pid_t pid_ = -1;
-  int err_ = -1;
-  bool reaped_ = false;
-  std::string buf_, log_;
-};
 
 // A "calibrated" event line with at least `keyframes` keyframes (captured keyframes can still
 // be rejected by the calibration; these are the ones it kept).
@@ -228,11 +148,11 @@ TEST(CliFiles, SigintSavesTheCalibrationSoFar) {
   std::vector<std::string> args = {
       "simulate", "--seed", "5", "--events", "--json", "--out", (dir / "cal.yml").string()};
   args.insert(args.end(), kLongSession.begin(), kLongSession.end());
-  Child c(args, dir / "stdout.json");
+  CliChild c(args, CliChild::Stream::kStderr, dir / "stdout.json");
   ASSERT_TRUE(c.wait_for([](const std::string& l) { return calibrated_with(l, 3); }, 120))
       << c.log();
   c.signal(SIGINT);
-  const int status = c.wait();
+  const int status = c.wait_status(60);
   ASSERT_TRUE(WIFEXITED(status)) << c.log();
   EXPECT_EQ(WEXITSTATUS(status), 130) << c.log();
   const std::string file = read_all(dir / "cal.yml");
@@ -252,7 +172,7 @@ TEST(CliFiles, SigtermStopsAStationAndKeepsEveryCamera) {
       "station", "--cameras", "sim://?seed=6,sim://?seed=7", "--events",
       "--json",  "--out-dir", (dir / "st").string()};
   args.insert(args.end(), kLongSession.begin(), kLongSession.end());
-  Child c(args, dir / "stdout.json");
+  CliChild c(args, CliChild::Stream::kStderr, dir / "stdout.json");
   std::map<std::string, int> per_camera;
   ASSERT_TRUE(c.wait_for(
       [&](const std::string& l) {
@@ -262,7 +182,7 @@ TEST(CliFiles, SigtermStopsAStationAndKeepsEveryCamera) {
       180))
       << c.log();
   c.signal(SIGTERM);
-  const int status = c.wait();
+  const int status = c.wait_status(60);
   ASSERT_TRUE(WIFEXITED(status)) << c.log();
   EXPECT_EQ(WEXITSTATUS(status), 143) << c.log();
   const Json sum = Json::parse(read_all(dir / "st" / "summary.json"));
@@ -280,14 +200,14 @@ TEST(CliFiles, ASecondSignalEndsAtOnce) {
   const fs::path dir = fresh_dir("twice");
   std::vector<std::string> args = {"simulate", "--seed", "8", "--events"};
   args.insert(args.end(), kLongSession.begin(), kLongSession.end());
-  Child c(args, dir / "stdout.txt");
+  CliChild c(args, CliChild::Stream::kStderr, dir / "stdout.txt");
   ASSERT_TRUE(c.wait_for([](const std::string& l) { return calibrated_with(l, 2); }, 120))
       << c.log();
   c.signal(SIGINT);
   // Two pending SIGINTs are one: let the first be handled before the second is sent.
   ::usleep(150 * 1000);
   c.signal(SIGINT);
-  const int status = c.wait();
+  const int status = c.wait_status(60);
   ASSERT_TRUE(WIFSIGNALED(status)) << "exited with " << WEXITSTATUS(status) << "\n" << c.log();
   EXPECT_EQ(WTERMSIG(status), SIGINT);
 }

@@ -26,16 +26,16 @@
 #include <string>
 #include <vector>
 
+#include "cli_child.hpp"
 #include "records/record_store.hpp"
 #include "session/journal.hpp"
 
 namespace fs = std::filesystem;
 using Json = nlohmann::json;
-using Clock = std::chrono::steady_clock;
+
+using posecal_test::CliChild;
 
 namespace {
-
-const std::string kCli = POSECAL_CLI;
 
 int rounds() {
   const char* r = std::getenv("POSECAL_KILL_ROUNDS");
@@ -52,80 +52,6 @@ fs::path write_vga_model(const fs::path& dir) {
                       "   data: [ -0.1, 0.05, 0., 0., 0. ]\n";
   return p;
 }
-
-// The CLI as a child whose stdout (JSON lines) the test reads; stderr goes to a file.
-class Child {
- public:
-  Child(const std::vector<std::string>& args, const fs::path& stderr_file) {
-    int fds[2];
-    if (::pipe(fds) != 0) return;
-    pid_ = ::fork();
-    if (pid_ == 0) {
-      ::dup2(fds[1], STDOUT_FILENO);
-      const int err = ::open(stderr_file.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
-      ::dup2(err, STDERR_FILENO);
-      ::close(fds[0]);
-      ::unsetenv("DISPLAY");
-      std::vector<char*> argv{const_cast<char*>(kCli.c_str())};
-      for (const auto& a : args) argv.push_back(const_cast<char*>(a.c_str()));
-      argv.push_back(nullptr);
-      ::execv(kCli.c_str(), argv.data());
-      ::_exit(127);
-    }
-    ::close(fds[1]);
-    out_ = fds[0];
-  }
-  ~Child() {
-    if (pid_ > 0 && !reaped_) {
-      ::kill(pid_, SIGKILL);
-      ::waitpid(pid_, nullptr, 0);
-    }
-    if (out_ >= 0) ::close(out_);
-  }
-  // Reads lines until `done(line)` or `timeout_s`; false on timeout or end of output.
-  bool wait_for(const std::function<bool(const std::string&)>& done, double timeout_s) {
-    const auto t0 = Clock::now();
-    while (std::chrono::duration<double>(Clock::now() - t0).count() < timeout_s) {
-      for (size_t nl; (nl = buf_.find('\n')) != std::string::npos;) {
-        const std::string line = buf_.substr(0, nl);
-        buf_.erase(0, nl + 1);
-        lines_.push_back(line);
-        if (done(line)) return true;
-      }
-      pollfd p{out_, POLLIN, 0};
-      if (::poll(&p, 1, 100) <= 0) continue;
-      char chunk[8192];
-      const ssize_t n = ::read(out_, chunk, sizeof chunk);
-      if (n <= 0) return false;
-      buf_.append(chunk, static_cast<size_t>(n));
-    }
-    return false;
-  }
-  void kill9() {
-    ::kill(pid_, SIGKILL);
-    ::waitpid(pid_, nullptr, 0);
-    reaped_ = true;
-  }
-  // Exit code after draining the output (-1 if killed by a signal).
-  int finish(double timeout_s) {
-    wait_for([](const std::string&) { return false; }, timeout_s);
-    int status = 0;
-    if (::waitpid(pid_, &status, WNOHANG) == 0) {
-      ::kill(pid_, SIGKILL);
-      ::waitpid(pid_, &status, 0);
-    }
-    reaped_ = true;
-    return WIFEXITED(status) ? WEXITSTATUS(status) : -1;
-  }
-  const std::vector<std::string>& lines() const { return lines_; }
-
- private:
-  pid_t pid_ = -1;
-  int out_ = -1;
-  bool reaped_ = false;
-  std::string buf_;
-  std::vector<std::string> lines_;
-};
 
 Json parse_line(const std::string& line) { return Json::parse(line, nullptr, false); }
 
@@ -194,7 +120,7 @@ TEST(KillResume, CalibrateKilledAnywhereResumesExactlyAndConverges) {
     const KillPoint kp = kill_point(rng);
     int calibrated = 0;
     {
-      Child c(args, dir / "stderr.txt");
+      CliChild c(args, CliChild::Stream::kStdout, dir / "stderr.txt");
       const bool there =
           c.wait_for([&](const std::string& l) { return reached(l, kp, &calibrated); }, 120);
       if (there) ::usleep(static_cast<useconds_t>(kp.delay_ms) * 1000);
@@ -205,7 +131,7 @@ TEST(KillResume, CalibrateKilledAnywhereResumesExactlyAndConverges) {
     ASSERT_NO_THROW(j = posecal::read_journal(journal.string())) << where << ": journal unreadable";
     // The keyframe in flight may be lost, no other.
     EXPECT_GE(static_cast<int>(j.keyframes.size()), calibrated - 1) << where;
-    Child again(args, dir / "stderr.txt");
+    CliChild again(args, CliChild::Stream::kStdout, dir / "stderr.txt");
     const int code = again.finish(180);
     EXPECT_EQ(code, 0) << where << " (kill after " << kp.keyframes << " keyframes + " << kp.delay_ms
                        << " ms)";
@@ -250,7 +176,7 @@ TEST(KillResume, StationKilledAnywhereResumesEveryCamera) {
       // The station prints its events on stderr and only the summary on stdout: kill after a
       // random time instead (0.3 .. 7 s covers every phase of a VGA calibration; a station that
       // finished before the kill is checked too, see finished_run).
-      Child c(args, dir / "stderr.txt");
+      CliChild c(args, CliChild::Stream::kStdout, dir / "stderr.txt");
       std::uniform_int_distribution<int> ms(300, 7000);
       c.wait_for([](const std::string&) { return false; }, ms(rng) / 1000.0);
       c.kill9();
@@ -295,13 +221,13 @@ TEST(KillResume, StationKilledAnywhereResumesEveryCamera) {
     // the run starts afresh (its journals go).
     std::vector<std::string> again_args = args;
     if (finished_run) {
-      Child refused(args, dir / "stderr.txt");
+      CliChild refused(args, CliChild::Stream::kStdout, dir / "stderr.txt");
       EXPECT_EQ(refused.finish(60), 1) << where << ": a finished run's directory was reused";
       again_args.push_back("--force");
       journalled.clear();
       ++finished_rounds;
     }
-    Child again(again_args, dir / "stderr.txt");
+    CliChild again(again_args, CliChild::Stream::kStdout, dir / "stderr.txt");
     const int code = again.finish(300);
     EXPECT_EQ(code, 0) << where;
     ASSERT_FALSE(again.lines().empty()) << where;

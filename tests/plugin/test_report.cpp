@@ -16,6 +16,7 @@
 #include <regex>
 #include <sstream>
 
+#include "cli_child.hpp"
 #include "records/record_store.hpp"
 #include "session/journal.hpp"
 
@@ -23,26 +24,15 @@ namespace fs = std::filesystem;
 
 namespace {
 
-struct Output {
-  int status = -1;
-  std::string out;
-};
+using Output = posecal_test::CliRun;
 
 // Runs a shell command; stderr is merged into `out` unless `stdout_only`.
 Output shell(const std::string& cmd, bool stdout_only = false) {
-  Output r;
-  FILE* p = popen((cmd + (stdout_only ? " 2>/dev/null" : " 2>&1")).c_str(), "r");
-  if (!p) return r;
-  std::array<char, 4096> buf;
-  size_t n;
-  while ((n = fread(buf.data(), 1, buf.size(), p)) > 0) r.out.append(buf.data(), n);
-  const int rc = pclose(p);
-  r.status = WIFEXITED(rc) ? WEXITSTATUS(rc) : -1;
-  return r;
+  return posecal_test::shell_raw(cmd + (stdout_only ? " 2>/dev/null" : " 2>&1"));
 }
 
 Output cli(const std::string& args, bool stdout_only = false) {
-  return shell("env -u DISPLAY " + std::string(POSECAL_CLI) + " " + args, stdout_only);
+  return posecal_test::run_cli(args, stdout_only);
 }
 
 std::string read_file(const std::string& path) {
